@@ -1,0 +1,35 @@
+# The README's two commands: `make run` and `make test`. Both bootstrap .venv from nothing.
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed-stamp
+
+.PHONY: run test lint bench experiments clean help
+
+help:
+	@echo "make run    start a server, run the paper simulation and the multi-robot demo against it"
+	@echo "make test   lint, type-check and run the whole test suite"
+	@echo "make bench  benchmarks and experiments (figures into experiments/results/)"
+
+# Re-install only when pyproject.toml changes; a second call costs nothing.
+$(STAMP): pyproject.toml
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[test,eval]'
+	@touch $(STAMP)
+
+run: $(STAMP)
+	$(PY) -m mcsm_client.demo
+
+lint: $(STAMP)
+	$(PY) -m ruff check service clients tests benchmarks experiments
+	$(PY) -m mypy service/mcsm clients/mcsm_client
+
+test: lint
+	$(PY) -m pytest -q
+
+bench: $(STAMP)
+	$(PY) benchmarks/run_all.py
+
+clean:
+	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache .hypothesis
