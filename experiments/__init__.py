@@ -1,0 +1,1 @@
+"""Experiments: consistency measurements, paper figures and baselines (not part of the wheel)."""

@@ -1,0 +1,1 @@
+"""Reference estimators the Monte Carlo map is measured against (EKF-SLAM)."""
