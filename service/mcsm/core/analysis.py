@@ -1,0 +1,94 @@
+"""Analysis rules of the joint update: per-sample weights ``w_i`` with ``Δx_i = C_xy w_i``.
+
+Every rule sees the centred predicted observations ``yc`` ``(N, p)``, their mean ``y_mean``
+``(p,)`` and the observation's samples ``z`` ``(N, p)``, and returns ``w`` ``(N, p)``. The
+state moves by one affine map per update, so sample order and O(M·N) cost are preserved, and
+a rule can be swapped without touching the map. With ``S = C_yy + R`` (``R = cov(z)``):
+
+* ``enkf``: perturbed observations, ``w_i = S⁺ (z_i − y_i)``: the plain joint update. Over
+  thousands of updates it collapses at fixed N (``shared/notes/consistency.md``).
+* ``denkf``: deterministic EnKF (Sakov & Oke 2008): the mean moves with the full gain using the
+  observation's mean, the anomalies with half the gain: ``w_i = S⁺ (z̄ − ȳ) − ½ S⁺ yc_i``.
+* ``ensrf``: ensemble square-root filter (Whitaker & Hamill 2002), mean as in ``denkf``,
+  anomalies with ``K̃ = C_xy S^-½ (S^½ + R^½)⁻¹``, which yields exactly ``(I − KH) P``.
+
+The deterministic rules use the observation only through its sample mean and covariance: a
+non-Gaussian observation sample set is reduced to two moments. All products use the scaled,
+truncated pseudo-inverses of :mod:`mcsm.core.at` (dead dimensions and rank deficiency are normal).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import numpy.typing as npt
+
+from mcsm.core.at import _scaled_eigh, sample_cov, sym_sqrt
+
+Array = npt.NDArray[np.float64]
+Rule = Callable[[Array, Array, Array], Array]
+
+
+def _moments(yc: Array, z: Array) -> tuple[Array, Array, Array]:
+    n = yc.shape[0]
+    c_yy = yc.T @ yc / (n - 1)
+    r = sample_cov(z)
+    return c_yy, r, c_yy + r
+
+
+def _pinv_parts(s: Array) -> tuple[Array, Array, Array, Array]:
+    """Scale vector d, eigenvectors v, and the kept eigenvalues' inverse and inverse root."""
+    d, lam, v = _scaled_eigh(s)
+    live = lam > 0.0
+    safe = np.where(live, lam, 1.0)
+    return d, v, np.where(live, 1.0 / safe, 0.0), np.where(live, 1.0 / np.sqrt(safe), 0.0)
+
+
+def enkf(yc: Array, y_mean: Array, z: Array) -> Array:
+    """Perturbed-observation weights ``S⁺ (z_i − y_i)``."""
+    _, _, s = _moments(yc, z)
+    d, v, inv, _ = _pinv_parts(s)
+    s_pinv = ((v * inv) @ v.T) * d[:, None] * d[None, :]
+    return (z - (yc + y_mean)) @ s_pinv
+
+
+def denkf(yc: Array, y_mean: Array, z: Array) -> Array:
+    """Deterministic EnKF weights ``S⁺ (z̄ − ȳ) − ½ S⁺ yc_i``."""
+    _, _, s = _moments(yc, z)
+    d, v, inv, _ = _pinv_parts(s)
+    s_pinv = ((v * inv) @ v.T) * d[:, None] * d[None, :]
+    return (z.mean(axis=0) - y_mean)[None, :] @ s_pinv - 0.5 * yc @ s_pinv
+
+
+def ensrf(yc: Array, y_mean: Array, z: Array) -> Array:
+    """Square-root weights ``S⁺ (z̄ − ȳ) − S^-½ (S^½ + R^½)⁺ yc_i`` (scaled coordinates)."""
+    _, r, s = _moments(yc, z)
+    d, v, inv, inv_sqrt = _pinv_parts(s)
+    s_pinv = ((v * inv) @ v.T) * d[:, None] * d[None, :]
+    # in the scaled coordinates ỹ = D y: S̃ = V Λ Vᵀ, R̃ = D R D
+    s_sqrt = (v * np.sqrt(np.where(inv > 0, 1.0 / np.where(inv > 0, inv, 1.0), 0.0))) @ v.T
+    s_isqrt = (v * inv_sqrt) @ v.T
+    r_sqrt = sym_sqrt(r * d[:, None] * d[None, :])
+    dd = s_isqrt @ np.linalg.pinv(s_sqrt + r_sqrt, rcond=1e-12, hermitian=True)
+    gain_tilde = dd * d[:, None] * d[None, :]  # back to the original coordinates: D (.) D
+    return (z.mean(axis=0) - y_mean)[None, :] @ s_pinv - yc @ gain_tilde.T
+
+
+RULES: dict[str, Rule] = {"ensrf": ensrf, "denkf": denkf, "enkf": enkf}
+
+
+def shrink_correlations(c_xy_t: Array, state: Array, yc: Array, c: float) -> Array:
+    """Sampling-error correction of cross-covariances (after Anderson 2012).
+
+    Multiplies each entry by ``max(0, 1 − c (1 − r²)² / (N r²))``, ``r`` its sample
+    correlation. ``c_xy_t`` ``(M, p, d)``, ``state`` ``(M, N, d)``, ``yc`` ``(N, p)``.
+    """
+    n = yc.shape[0]
+    var_x = state.var(axis=1, ddof=1)  # (M, d)
+    var_y = np.einsum("np,np->p", yc, yc) / (n - 1)
+    denom = var_y[None, :, None] * var_x[:, None, :]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r2 = np.where(denom > 0, c_xy_t**2 / np.where(denom > 0, denom, 1.0), 0.0)
+        factor = np.where(r2 > 0, 1.0 - c * (1.0 - r2) ** 2 / (n * np.where(r2 > 0, r2, 1.0)), 0.0)
+    return c_xy_t * np.clip(factor, 0.0, 1.0)

@@ -1,0 +1,232 @@
+"""Approximate transformations (ATs): ordered Monte Carlo sample sets of rigid transforms.
+
+An AT ``x_t_u`` from frame t to frame u is an ``(N, 7)`` float64 array, columns
+``x y z qw qx qy qz``; row i of every AT of one map component is one joint draw (PAPER §1-2),
+so nothing here reorders rows. All functions accept leading axes (``(..., N, 7)``).
+
+Linear algebra on sample covariances (PAPER §5: singular covariances are the normal case):
+:func:`scaled_pinv` scales every dimension to unit variance, drops dimensions with (numerically)
+zero variance, and truncates eigenvalues below ``RTOL`` times the largest. Metres and
+quaternion units differ by orders of magnitude; the scaling makes one relative tolerance
+meaningful for both.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+import numpy.typing as npt
+
+from mcsm.core.quat import (
+    align_hemisphere,
+    mean_rotation,
+    qconj,
+    qexp,
+    qlog,
+    qmul,
+    qnormalize,
+    qrot,
+)
+from mcsm.errors import InvalidSamples, SampleCountMismatch
+
+Array = npt.NDArray[np.float64]
+Space = Literal["tangent", "quaternion"]
+
+#: |‖q‖² − 1| accepted on input before renormalisation.
+QUAT_NORM_TOL = 1e-6
+#: a variance below this (in the data's own units²) is treated as exactly zero.
+ZERO_VARIANCE = 1e-20
+#: eigenvalues of a unit-diagonal covariance below RTOL × the largest are truncated.
+RTOL = 1e-9
+
+
+def identity(n_samples: int) -> Array:
+    """The identity AT: ``n_samples`` copies of ``(0, 0, 0, 1, 0, 0, 0)``."""
+    x = np.zeros((n_samples, 7))
+    x[:, 3] = 1.0
+    return x
+
+
+def compound(x_a_b: Array, x_b_c: Array) -> Array:
+    """Compound ``x_a_b ⊕ x_b_c`` sample by sample (PAPER §1); broadcasting over leading axes.
+
+    ``t = t_ab + R(q_ab) t_bc``, ``q = q_ab q_bc``.
+    """
+    q_ab = x_a_b[..., 3:]
+    t = x_a_b[..., :3] + qrot(q_ab, x_b_c[..., :3])
+    q = qmul(q_ab, x_b_c[..., 3:])
+    return np.concatenate((t, q), axis=-1)
+
+
+def invert(x_a_b: Array) -> Array:
+    """Invert ``x_a_b^R`` sample by sample: ``q' = q⁻¹``, ``t' = −R(q)ᵀ t`` (PAPER §1)."""
+    q = qconj(x_a_b[..., 3:])
+    t = -qrot(q, x_a_b[..., :3])
+    return np.concatenate((t, q), axis=-1)
+
+
+def canonicalize(x: Array) -> Array:
+    """Put every AT's quaternion samples on the hemisphere of its own mean; renormalise.
+
+    ``x``: ``(..., N, 7)``. Needed before any linear step in quaternion space (PAPER §5).
+    """
+    q = qnormalize(x[..., 3:])
+    ref = mean_rotation(q)[..., None, :]
+    out = np.empty_like(x)
+    out[..., :3] = x[..., :3]
+    out[..., 3:] = align_hemisphere(q, ref)
+    return out
+
+
+def check_samples(x: object, n_samples: int | None, width: int) -> Array:
+    """Validate a sample set and return it as a fresh, C-contiguous float64 array.
+
+    Parameters
+    ----------
+    x : array-like, expected ``(N, width)`` with ``width`` 7 (AT) or 3 (point)
+    n_samples : the map's N, or None to accept any N >= 2
+    width : 7 or 3
+
+    Raises
+    ------
+    InvalidSamples, SampleCountMismatch
+    """
+    if not isinstance(x, np.ndarray):
+        raise InvalidSamples(f"expected a numpy array, got {type(x).__name__}")
+    if x.dtype.kind != "f":
+        raise InvalidSamples(f"expected a floating-point dtype, got {x.dtype}")
+    if x.ndim != 2 or x.shape[1] != width:
+        raise InvalidSamples(f"expected shape (N, {width}), got {x.shape}")
+    if n_samples is not None and x.shape[0] != n_samples:
+        raise SampleCountMismatch(n_samples, int(x.shape[0]))
+    if x.shape[0] < 2:
+        raise InvalidSamples("at least 2 samples are needed")
+    a = np.array(x, dtype=np.float64, order="C", copy=True)
+    if not np.isfinite(a).all():
+        raise InvalidSamples("non-finite values")
+    if width == 7:
+        norm2 = np.einsum("ij,ij->i", a[:, 3:], a[:, 3:])
+        worst = float(np.max(np.abs(norm2 - 1.0)))
+        if worst > QUAT_NORM_TOL:
+            raise InvalidSamples(f"quaternion norm off by {worst:.3g} (tolerance {QUAT_NORM_TOL})")
+        a[:, 3:] /= np.sqrt(norm2)[:, None]
+    return a
+
+
+# --------------------------------------------------------------------------- linear algebra
+
+
+def sample_cov(a: Array, b: Array | None = None) -> Array:
+    """Sample (cross-)covariance over axis -2: ``(..., N, p)``, ``(..., N, q)`` -> ``(..., p, q)``."""
+    ac = a - a.mean(axis=-2, keepdims=True)
+    bc = ac if b is None else b - b.mean(axis=-2, keepdims=True)
+    n = a.shape[-2]
+    return np.swapaxes(ac, -1, -2) @ bc / (n - 1)
+
+
+def _scaled_eigh(s: Array) -> tuple[Array, Array, Array]:
+    """Eigen-decompose ``D s D`` with ``D = diag(1/sqrt(diag s))`` (0 for dead dimensions).
+
+    Returns (d, lam, v): the scale vector, eigenvalues with truncated ones set to 0, vectors.
+    """
+    diag = np.diagonal(s, axis1=-2, axis2=-1)
+    live = diag > ZERO_VARIANCE
+    d = np.where(live, 1.0 / np.sqrt(np.where(live, diag, 1.0)), 0.0)
+    sn = s * d[..., :, None] * d[..., None, :]
+    lam, v = np.linalg.eigh(0.5 * (sn + np.swapaxes(sn, -1, -2)))
+    cut = RTOL * np.max(np.abs(lam), axis=-1, keepdims=True)
+    lam = np.where(lam > cut, lam, 0.0)
+    return d, lam, v
+
+
+def _apply_fn(d: Array, lam: Array, v: Array, f: Array) -> Array:
+    """``D V diag(f) Vᵀ D``."""
+    m = (v * f[..., None, :]) @ np.swapaxes(v, -1, -2)
+    return m * d[..., :, None] * d[..., None, :]
+
+
+def scaled_pinv(s: Array) -> Array:
+    """Scaled, truncated pseudo-inverse of symmetric PSD matrices ``(..., p, p)``."""
+    d, lam, v = _scaled_eigh(s)
+    with np.errstate(divide="ignore"):
+        f = np.where(lam > 0.0, 1.0 / np.where(lam > 0.0, lam, 1.0), 0.0)
+    return _apply_fn(d, lam, v, f)
+
+
+def sym_sqrt(s: Array) -> Array:
+    """Symmetric PSD square root ``(..., p, p)`` (negative eigenvalues clipped to 0)."""
+    lam, v = np.linalg.eigh(0.5 * (s + np.swapaxes(s, -1, -2)))
+    return (v * np.sqrt(np.clip(lam, 0.0, None))[..., None, :]) @ np.swapaxes(v, -1, -2)
+
+
+# --------------------------------------------------------------------------- merge spaces
+
+
+def to_space(x: Array, space: Space, q_ref: Array | None = None) -> tuple[Array, Array]:
+    """Express ATs ``(..., N, 7)`` as plain vectors for a linear step.
+
+    ``quaternion``: the 7-vector, quaternions on the hemisphere of ``q_ref``.
+    ``tangent``: ``[t, log(q_ref⁻¹ q)]`` (6-D), the ⊞ chart around ``q_ref`` (PAPER §5).
+    ``q_ref`` ``(..., 4)`` defaults to each AT's mean rotation. Returns (vectors, q_ref).
+    """
+    q = x[..., 3:]
+    if q_ref is None:
+        q_ref = mean_rotation(q)
+    ref = q_ref[..., None, :]
+    if space == "quaternion":
+        return np.concatenate((x[..., :3], align_hemisphere(q, ref)), axis=-1), q_ref
+    return np.concatenate((x[..., :3], qlog(qmul(qconj(ref), q))), axis=-1), q_ref
+
+
+def from_space(v: Array, space: Space, q_ref: Array) -> Array:
+    """Inverse of :func:`to_space`: vectors back to ATs with unit quaternions."""
+    if space == "quaternion":
+        return np.concatenate((v[..., :3], qnormalize(v[..., 3:])), axis=-1)
+    q = qmul(q_ref[..., None, :], qexp(v[..., 3:]))
+    return np.concatenate((v[..., :3], q), axis=-1)
+
+
+def _merge_vectors(p_a: Array, p_b: Array, c_a: Array, c_sum: Array) -> Array:
+    """``P_A + C_A (C_sum)⁺ (P_B − P_A)`` sample by sample (PAPER eq. 2-3)."""
+    gain = c_a @ scaled_pinv(c_sum)
+    return p_a + (p_b - p_a) @ np.swapaxes(gain, -1, -2)
+
+
+def merge(x_a: Array, x_b: Array, space: Space = "tangent") -> Array:
+    """Merge two independent estimates of the same relation (PAPER §1, eqs. 2-3).
+
+    ``K = C_A (C_A + C_B)⁺``, ``P = P_A + K (P_B − P_A)`` on ``(..., N, 7)``; the Ensemble
+    Kalman update where state and observation share variables. Quaternions are renormalised.
+    """
+    p_a, q_ref = to_space(x_a, space)
+    p_b, _ = to_space(x_b, space, q_ref)
+    c_a = sample_cov(p_a)
+    return from_space(_merge_vectors(p_a, p_b, c_a, c_a + sample_cov(p_b)), space, q_ref)
+
+
+def merge_correlated(x_c: Array, x_d: Array, space: Space = "tangent") -> Array:
+    """Revised merge for possibly correlated estimates (PAPER §2, eq. 6).
+
+    ``C_X = (cov C + cov D − cov(C − D)) / 2``, ``C_A = cov C − C_X``, ``C_B = cov D − C_X``,
+    then eqs. 2-3 with ``C_A``, ``C_B`` (``C_A + C_B = cov(C − D)``). Idempotent:
+    ``merge_correlated(a, a)`` returns ``a`` (up to renormalisation).
+    """
+    p_c, q_ref = to_space(x_c, space)
+    p_d, _ = to_space(x_d, space, q_ref)
+    cov_c = sample_cov(p_c)
+    cov_d = sample_cov(p_d)
+    cov_diff = sample_cov(p_c - p_d)
+    c_x = 0.5 * (cov_c + cov_d - cov_diff)
+    return from_space(_merge_vectors(p_c, p_d, cov_c - c_x, cov_diff), space, q_ref)
+
+
+def mean_and_cov(x: Array) -> tuple[Array, Array]:
+    """Mean 7-vector and 6×6 tangent covariance of an AT ``(N, 7)``.
+
+    The mean rotation is the chordal mean; the covariance is over ``[t, δ]`` with
+    ``q = q_mean ⊗ exp(δ)`` (body-frame rotation vector), order ``tx ty tz rx ry rz``.
+    """
+    v, q_ref = to_space(x, "tangent")
+    mean = np.concatenate((v[..., :3].mean(axis=-2), q_ref), axis=-1)
+    return mean, sample_cov(v)

@@ -1,0 +1,560 @@
+"""The Monte Carlo stochastic map: a forest of star graphs of ATs (PAPER §3).
+
+Each component has a root frame and one edge root→frame for every frame, the root's own edge
+being the exact identity at index 0. A component's edges live in one contiguous ``(M, N, 7)``
+array. Row i of every edge is one joint draw: nothing here reorders samples.
+
+Case II (loop closure) has two update methods:
+
+* ``method="paper"``: PAPER §3 Fig. 3 literally: re-root at ``a``, merge the main edge with the
+  revised merge, propagate to every leaf with ``E_j ⊗ (G' ⊕ G^R ⊕ E_j)``.
+* ``method="joint"``: one ensemble-Kalman analysis of the whole component. The observation is
+  predicted per sample, ``h = (r→a)^R ⊕ (r→b)`` (statistical linearisation; no re-rooting),
+  and every edge moves by ``Δ_i = C_xy w_i`` where ``C_xy`` is the sample cross-covariance of
+  the edge with ``h`` and ``w_i`` a per-sample weight vector from the analysis rule
+  (:mod:`mcsm.core.analysis`). Two products over the sample axis, O(M·N).
+
+Every operation computes into new arrays and swaps them in at the end, after checks: a failing
+call raises an :class:`mcsm.errors.McsmError` and leaves the map bit-identical.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import re
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+import numpy.typing as npt
+
+from mcsm.core import analysis as an
+from mcsm.core.at import (
+    QUAT_NORM_TOL,
+    Space,
+    canonicalize,
+    check_samples,
+    compound,
+    identity,
+    invert,
+    merge_correlated,
+    mean_and_cov,
+    to_space,
+)
+from mcsm.core.quat import mean_rotation, qconj, qexp, qlog, qmul, qrot
+from mcsm.errors import (
+    FrameExists,
+    InvalidOperation,
+    InvalidSamples,
+    McsmError,
+    NotRelated,
+    NumericalError,
+    SampleCountMismatch,
+    UnknownFrame,
+)
+
+Array = npt.NDArray[np.float64]
+Method = Literal["joint", "paper"]
+
+FRAME_NAME_RE = re.compile(r"^[A-Za-z0-9_.:+\-]{1,128}$")
+METHODS = ("joint", "paper")
+SPACES = ("tangent", "quaternion")
+
+
+def check_frame_name(name: object) -> str:
+    """Return ``name`` if it is a valid frame name (1-128 chars of ``[A-Za-z0-9_.:+-]``)."""
+    if not isinstance(name, str) or not FRAME_NAME_RE.match(name):
+        raise InvalidOperation(
+            f"invalid frame name {name!r}: 1 to 128 characters from [A-Za-z0-9_.:+-]")
+    return name
+
+
+@dataclass(frozen=True)
+class UpdateResult:
+    """What an update did: ``kind`` is new_component, new_frame, join, loop_closure or import."""
+
+    kind: str
+    component: str
+    frames_added: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class RemoveResult:
+    """What a remove did: the root of what is left of the component (None if nothing)."""
+
+    component: str | None
+    frames_removed: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class Submap:
+    """A whole component: frames (root first), point flags, edges ``(M, N, 7)``, sample order intact."""
+
+    root: str
+    frames: tuple[str, ...]
+    is_point: tuple[bool, ...]
+    edges: Array = field(repr=False)
+
+
+@dataclass
+class _Component:
+    frames: list[str]
+    is_point: npt.NDArray[np.bool_]
+    edges: Array  # (M, N, 7), edges[0] is the exact identity
+
+    @property
+    def root(self) -> str:
+        return self.frames[0]
+
+
+class StochasticMap:
+    """A forest of star graphs of ATs with N samples each (PAPER §3).
+
+    Parameters
+    ----------
+    n_samples : N, constant for the whole map
+    method : ``"joint"`` (default) or ``"paper"``, the case II update (module docstring)
+    space : ``"tangent"`` (default, the ⊞ chart of PAPER §5) or ``"quaternion"`` (the paper's
+        7-D Euclidean treatment), the vector space of every linear step
+    analysis : rule of the joint update: ``"ensrf"`` (default; deterministic square root),
+        ``"denkf"`` or ``"enkf"`` (perturbed observations, the plain joint update);
+        see :mod:`mcsm.core.analysis`
+    shrink : correlation-shrink constant c (Anderson 2012) for the cross-covariances, or None
+    inflation : multiplicative inflation of every edge's anomalies after each loop closure
+    """
+
+    def __init__(
+        self,
+        n_samples: int,
+        *,
+        method: str = "joint",
+        space: str = "tangent",
+        analysis: str = "ensrf",
+        shrink: float | None = None,
+        inflation: float = 1.0,
+    ) -> None:
+        if not isinstance(n_samples, int) or isinstance(n_samples, bool) or n_samples < 2:
+            raise InvalidOperation(f"n_samples must be an integer >= 2, got {n_samples!r}")
+        if method not in METHODS:
+            raise InvalidOperation(f"method must be one of {METHODS}, got {method!r}")
+        if space not in SPACES:
+            raise InvalidOperation(f"space must be one of {SPACES}, got {space!r}")
+        if analysis not in an.RULES:
+            raise InvalidOperation(f"analysis must be one of {tuple(an.RULES)}, got {analysis!r}")
+        if shrink is not None and not (np.isfinite(shrink) and shrink >= 0):
+            raise InvalidOperation(f"shrink must be None or >= 0, got {shrink!r}")
+        if not (np.isfinite(inflation) and 1.0 <= inflation < 2.0):
+            raise InvalidOperation(f"inflation must be in [1, 2), got {inflation!r}")
+        self.n_samples = n_samples
+        self.method: Method = method  # type: ignore[assignment]
+        self.space: Space = space  # type: ignore[assignment]
+        self.analysis = analysis
+        self.shrink = None if shrink is None else float(shrink)
+        self.inflation = float(inflation)
+        self._comps: dict[int, _Component] = {}
+        self._where: dict[str, int] = {}  # frame -> component id
+        self._order: dict[str, None] = {}  # frames in insertion order
+        self._next_id = 0
+
+    # ------------------------------------------------------------------ introspection
+
+    def options(self) -> dict[str, Any]:
+        """The constructor arguments, as a plain dict (round-trips through from_options)."""
+        return {"n_samples": self.n_samples, "method": self.method, "space": self.space,
+                "analysis": self.analysis, "shrink": self.shrink, "inflation": self.inflation}
+
+    @classmethod
+    def from_options(cls, options: dict[str, Any]) -> StochasticMap:
+        """Build an empty map from :meth:`options` output."""
+        o = dict(options)
+        n = o.pop("n_samples")
+        return cls(int(n), **o)
+
+    def __contains__(self, frame: object) -> bool:
+        return frame in self._where
+
+    @property
+    def n_frames(self) -> int:
+        return len(self._where)
+
+    def frames(self) -> list[str]:
+        """All frames, in the order they were added."""
+        return list(self._order)
+
+    def components(self) -> list[str]:
+        """The root frame of every component, oldest component first."""
+        return [c.root for _, c in sorted(self._comps.items())]
+
+    def component(self, frame: str) -> list[str]:
+        """The frames of ``frame``'s component, root first."""
+        return list(self._comp_of(frame).frames)
+
+    def root(self, frame: str) -> str:
+        return self._comp_of(frame).root
+
+    def is_point(self, frame: str) -> bool:
+        c = self._comp_of(frame)
+        return bool(c.is_point[c.frames.index(frame)])
+
+    def edges(self, frame: str) -> Array:
+        """A read-only view of the ``(M, N, 7)`` edge array of ``frame``'s component."""
+        e = self._comp_of(frame).edges.view()
+        e.flags.writeable = False
+        return e
+
+    def state_digest(self) -> str:
+        """SHA-256 (hex) of the whole state: options, components, names, flags, sample bytes."""
+        h = hashlib.sha256()
+        h.update(json.dumps(self.options(), sort_keys=True).encode())
+        h.update(json.dumps(list(self._order)).encode())
+        for cid, c in sorted(self._comps.items()):
+            h.update(json.dumps([cid, c.frames]).encode())
+            h.update(c.is_point.tobytes())
+            h.update(np.ascontiguousarray(c.edges, dtype="<f8").tobytes())
+        return h.hexdigest()
+
+    # ------------------------------------------------------------------ queries
+
+    def query(self, a: str, b: str) -> Array:
+        """Samples of the AT a→b: ``(root→a)^R ⊕ (root→b)``, O(N) (PAPER §3)."""
+        c, ia, ib = self._pair(a, b)
+        if ia == 0:
+            return c.edges[ib].copy()
+        if ib == 0:
+            return invert(c.edges[ia])
+        return compound(invert(c.edges[ia]), c.edges[ib])
+
+    def marginal(self, a: str, b: str) -> tuple[Array, Array]:
+        """Mean 7-vector and 6×6 tangent covariance of a→b (see :func:`mean_and_cov`)."""
+        return mean_and_cov(self.query(a, b))
+
+    # ------------------------------------------------------------------ updates
+
+    def update(self, a: str, b: str, samples: Array) -> UpdateResult:
+        """Apply the observation ``samples`` of b seen from a.
+
+        ``samples`` ``(N, 7)``: an AT a→b. ``(N, 3)``: the position of point frame b in a.
+        New frames are added, two components are joined (case I) or a loop is closed
+        (case II). Raises an McsmError and changes nothing on failure.
+        """
+        check_frame_name(a)
+        check_frame_name(b)
+        if a == b:
+            raise InvalidOperation(f"an update needs two different frames, got {a!r} twice")
+        if not isinstance(samples, np.ndarray):
+            raise InvalidSamples(f"expected a numpy array, got {type(samples).__name__}")
+        width = samples.shape[-1] if samples.ndim == 2 else -1
+        if width not in (3, 7):
+            raise InvalidSamples(f"expected shape (N, 7) or (N, 3), got {samples.shape}")
+        x = check_samples(samples, self.n_samples, width)
+        point = width == 3
+        has_a, has_b = a in self._where, b in self._where
+        if has_a and self.is_point(a):
+            raise InvalidOperation(f"{a!r} is a point frame: it has no orientation to observe from")
+        if has_b and not point and self.is_point(b):
+            raise InvalidOperation(f"{b!r} is a point frame: observe it with (N, 3) samples")
+        if has_b and point and not self.is_point(b):
+            raise InvalidOperation(f"{b!r} is a full frame: observe it with (N, 7) samples")
+
+        if not has_a and not has_b:
+            return self._new_component(a, b, x, point)
+        if has_a and not has_b:
+            return self._add_leaf(a, b, x, point)
+        if not has_a:
+            if point:
+                raise InvalidOperation(
+                    f"a point observation cannot place the unknown observer {a!r}")
+            return self._add_leaf(b, a, None, point, x_inverse=x)
+        if self._where[a] != self._where[b]:
+            return self._join(a, b, x, point)
+        if self.method == "paper":
+            return self._paper_update(a, b, x, point)
+        return self._joint_update(a, b, x, point)
+
+    def remove(self, frame: str) -> RemoveResult:
+        """Drop ``frame``'s edge; other frames' samples stay bit-identical (PAPER §3).
+
+        Removing a root first re-roots the component at its first full frame (O(M·N)).
+        """
+        cid = self._cid(frame)
+        c = self._comps[cid]
+        i = c.frames.index(frame)
+        if len(c.frames) == 1:
+            self._forget_component(cid)
+            return RemoveResult(None, (frame,))
+        if i == 0:
+            full = [k for k in range(1, len(c.frames)) if not c.is_point[k]]
+            c = self._rerooted(c, full[0] if full else 1)
+            i = c.frames.index(frame)
+        keep = np.ones(len(c.frames), dtype=bool)
+        keep[i] = False
+        new = _Component([f for f, k in zip(c.frames, keep, strict=True) if k],
+                         c.is_point[keep], c.edges[keep])
+        self._comps[cid] = new
+        del self._where[frame]
+        del self._order[frame]
+        return RemoveResult(new.root, (frame,))
+
+    # ------------------------------------------------------------------ submaps
+
+    def export_component(self, frame: str) -> Submap:
+        """A copy of ``frame``'s whole component (sample order intact)."""
+        c = self._comp_of(frame)
+        return Submap(c.root, tuple(c.frames), tuple(bool(p) for p in c.is_point), c.edges.copy())
+
+    def import_component(self, submap: Submap) -> UpdateResult:
+        """Add an exported component as a new component of this map (names must be new)."""
+        frames = [check_frame_name(f) for f in submap.frames]
+        if len(set(frames)) != len(frames):
+            raise InvalidOperation("a submap names a frame twice")
+        for f in frames:
+            if f in self._where:
+                raise FrameExists(f)
+        e = submap.edges
+        if not isinstance(e, np.ndarray) or e.dtype.kind != "f" or e.ndim != 3 or \
+                e.shape[0] != len(frames) or e.shape[2] != 7:
+            raise InvalidSamples(f"submap edges must be ({len(frames)}, N, 7) floats")
+        if e.shape[1] != self.n_samples:
+            raise SampleCountMismatch(self.n_samples, int(e.shape[1]))
+        if len(submap.is_point) != len(frames):
+            raise InvalidOperation("submap point flags do not match its frames")
+        edges = np.array(e, dtype=np.float64, order="C", copy=True)
+        if not np.isfinite(edges).all():
+            raise InvalidSamples("non-finite values in submap edges")
+        norm2 = np.einsum("mnk,mnk->mn", edges[..., 3:], edges[..., 3:])
+        if np.max(np.abs(norm2 - 1.0)) > QUAT_NORM_TOL:
+            raise InvalidSamples("non-unit quaternions in submap edges")
+        if np.max(np.abs(edges[0] - identity(self.n_samples))) > 1e-12:
+            raise InvalidSamples("the root edge of a submap must be the identity")
+        edges[..., 3:] /= np.sqrt(norm2)[..., None]
+        edges[0] = identity(self.n_samples)
+        comp = _Component(frames, np.array(submap.is_point, dtype=bool), canonicalize(edges))
+        self._pin_points(comp.edges, comp.is_point)
+        self._install(comp, new_frames=frames)
+        return UpdateResult("import", frames[0], tuple(frames))
+
+    # ------------------------------------------------------------------ internals: structure
+
+    def _cid(self, frame: str) -> int:
+        try:
+            return self._where[frame]
+        except (KeyError, TypeError):
+            raise UnknownFrame(str(frame)) from None
+
+    def _comp_of(self, frame: str) -> _Component:
+        return self._comps[self._cid(frame)]
+
+    def _pair(self, a: str, b: str) -> tuple[_Component, int, int]:
+        ca, cb = self._cid(a), self._cid(b)
+        if ca != cb:
+            raise NotRelated(a, b)
+        c = self._comps[ca]
+        return c, c.frames.index(a), c.frames.index(b)
+
+    def _install(self, comp: _Component, new_frames: list[str], cid: int | None = None) -> int:
+        if cid is None:
+            cid = self._next_id
+            self._next_id += 1
+        self._comps[cid] = comp
+        for f in comp.frames:
+            self._where[f] = cid
+        for f in new_frames:
+            self._order[f] = None
+        return cid
+
+    def _forget_component(self, cid: int) -> None:
+        for f in self._comps.pop(cid).frames:
+            del self._where[f]
+            del self._order[f]
+
+    @staticmethod
+    def _pin_points(edges: Array, is_point: npt.NDArray[np.bool_]) -> None:
+        """A point frame's orientation is defined as its root's: identity quaternions."""
+        if is_point.any():
+            edges[is_point, :, 3:] = (1.0, 0.0, 0.0, 0.0)
+
+    @staticmethod
+    def _check_finite(edges: Array, what: str) -> None:
+        if not np.isfinite(edges).all():
+            raise NumericalError(f"{what} produced non-finite samples")
+
+    def _point_edge(self, x_r_a: Array, p: Array) -> Array:
+        e = identity(self.n_samples)
+        e[:, :3] = x_r_a[:, :3] + qrot(x_r_a[:, 3:], p)
+        return e
+
+    def _new_component(self, a: str, b: str, x: Array, point: bool) -> UpdateResult:
+        n = self.n_samples
+        leaf = self._point_edge(identity(n), x) if point else x
+        edges = np.stack((identity(n), leaf))
+        comp = _Component([a, b], np.array([False, point]), canonicalize(edges))
+        self._pin_points(comp.edges, comp.is_point)
+        self._install(comp, new_frames=[a, b])
+        return UpdateResult("new_component", a, (a, b))
+
+    def _add_leaf(self, known: str, new: str, x: Array | None, point: bool,
+                  x_inverse: Array | None = None) -> UpdateResult:
+        """Add ``new`` to ``known``'s component: root→new = root→known ⊕ X (or ⊕ X^R)."""
+        cid = self._cid(known)
+        c = self._comps[cid]
+        e_known = c.edges[c.frames.index(known)]
+        if point:
+            assert x is not None
+            leaf = self._point_edge(e_known, x)
+        elif x is not None:
+            leaf = compound(e_known, x)
+        else:
+            assert x_inverse is not None
+            leaf = compound(e_known, invert(x_inverse))
+        leaf = canonicalize(leaf)
+        self._check_finite(leaf, "adding a frame")
+        comp = _Component(c.frames + [new], np.append(c.is_point, point),
+                          np.concatenate((c.edges, leaf[None])))
+        self._install(comp, new_frames=[new], cid=cid)
+        return UpdateResult("new_frame", c.root, (new,))
+
+    def _join(self, a: str, b: str, x: Array, point: bool) -> UpdateResult:
+        """Case I (PAPER §3, Fig. 2): r1→l = (r1→a) ⊕ X ⊕ (r2→b)^R ⊕ (r2→l) for l in b's tree."""
+        c1, c2 = self._comp_of(a), self._comp_of(b)
+        if point:
+            if len(c2.frames) > 1:
+                raise InvalidOperation(
+                    f"joining two multi-frame components through one point observation is "
+                    f"under-determined (the orientation between them is unknown): observe a "
+                    f"full frame of {b!r}'s component with an (N, 7) AT instead")
+            leaf = self._point_edge(c1.edges[c1.frames.index(a)], x)
+            moved = leaf[None]
+        else:
+            ia, ib = c1.frames.index(a), c2.frames.index(b)
+            x_r1_r2 = compound(compound(c1.edges[ia], x), invert(c2.edges[ib]))
+            moved = compound(x_r1_r2[None], c2.edges)
+        moved = canonicalize(moved)
+        self._pin_points(moved, c2.is_point)
+        self._check_finite(moved, "the join")
+        cid1, cid2 = self._where[a], self._where[b]
+        comp = _Component(c1.frames + c2.frames, np.concatenate((c1.is_point, c2.is_point)),
+                          np.concatenate((c1.edges, moved)))
+        del self._comps[cid2]
+        self._install(comp, new_frames=[], cid=cid1)
+        return UpdateResult("join", c1.root, ())
+
+    def _rerooted(self, c: _Component, k: int) -> _Component:
+        """The component re-rooted at index k: every edge becomes (r→k)^R ⊕ (r→l) (PAPER Fig. 3a)."""
+        x_k_r = invert(c.edges[k])
+        edges = compound(x_k_r[None], c.edges)
+        edges[k] = identity(self.n_samples)
+        order = [k] + [i for i in range(len(c.frames)) if i != k]
+        edges = canonicalize(edges[order])
+        is_point = c.is_point[order]
+        self._pin_points(edges, is_point)
+        edges[0] = identity(self.n_samples)
+        self._check_finite(edges, "re-rooting")
+        return _Component([c.frames[i] for i in order], is_point, edges)
+
+    # ------------------------------------------------------------------ case II: paper
+
+    def _paper_update(self, a: str, b: str, x: Array, point: bool) -> UpdateResult:
+        """PAPER Fig. 3: re-root at a, G' = G ⊗ X, E_j' = E_j ⊗ (G' ⊕ G^R ⊕ E_j)."""
+        cid = self._where[a]
+        c = self._comps[cid]
+        if c.frames[0] != a:
+            c = self._rerooted(c, c.frames.index(a))
+        ib = c.frames.index(b)
+        g = c.edges[ib]
+        if point:
+            g_new = g.copy()
+            g_new[:, :3] = _merge_points(g[:, :3], x)
+        else:
+            g_new = merge_correlated(g, x, self.space)
+        shift = compound(g_new, invert(g))
+        others = np.ones(len(c.frames), dtype=bool)
+        others[[0, ib]] = False
+        edges = c.edges.copy()
+        if others.any():
+            e_j = c.edges[others]
+            edges[others] = merge_correlated(e_j, compound(shift[None], e_j), self.space)
+        edges[ib] = g_new
+        edges = canonicalize(edges)
+        self._pin_points(edges, c.is_point)
+        edges[0] = identity(self.n_samples)
+        self._check_finite(edges, "the loop closure")
+        self._install(_Component(c.frames, c.is_point, edges), new_frames=[], cid=cid)
+        return UpdateResult("loop_closure", a, ())
+
+    # ------------------------------------------------------------------ case II: joint
+
+    def _joint_update(self, a: str, b: str, x: Array, point: bool) -> UpdateResult:
+        """One ensemble-Kalman analysis of the whole component (module docstring)."""
+        cid = self._where[a]
+        c = self._comps[cid]
+        ia, ib = c.frames.index(a), c.frames.index(b)
+        y, z = self._predict(c.edges[ia], c.edges[ib], x, point)
+        n = self.n_samples
+        y_mean = y.mean(axis=0)
+        yc = y - y_mean
+        try:
+            w = an.RULES[self.analysis](yc, y_mean, z)
+        except np.linalg.LinAlgError as e:
+            raise NumericalError(f"the analysis failed: {e}") from None
+        if not np.isfinite(w).all():
+            raise NumericalError("the analysis produced non-finite weights")
+
+        if self.space == "quaternion":
+            state = c.edges
+            q_ref = None
+        else:
+            q_ref = mean_rotation(c.edges[..., 3:])  # (M, 4)
+            rot = qlog(qmul(qconj(q_ref)[:, None, :], c.edges[..., 3:]))
+            state = np.concatenate((c.edges[..., :3], rot), axis=-1)  # (M, N, 6)
+        # cross-covariance of every edge component with the predicted observation: (M, p, d)
+        c_xy_t = np.matmul(yc.T[None], state) / (n - 1)
+        if self.shrink is not None:
+            c_xy_t = an.shrink_correlations(c_xy_t, state, yc, self.shrink)
+        delta = np.matmul(w[None], c_xy_t)  # (M, N, d)
+        delta += state
+        new_state = delta
+        if self.inflation != 1.0:
+            mean = new_state.mean(axis=1, keepdims=True)
+            new_state = mean + self.inflation * (new_state - mean)
+        if self.space == "quaternion":
+            q = new_state[..., 3:]
+            norm = np.sqrt(np.einsum("mnk,mnk->mn", q, q))
+            if not np.all(norm > 0.1) or not np.isfinite(norm).all():
+                raise NumericalError("the update pushed quaternions towards zero")
+            q /= norm[..., None]
+            edges = new_state
+        else:
+            assert q_ref is not None
+            q = qmul(q_ref[:, None, :], qexp(new_state[..., 3:]))
+            edges = np.concatenate((new_state[..., :3], q), axis=-1)
+        self._check_finite(edges, "the loop closure")
+        # The root edge and point orientations have zero anomalies, so the update leaves them
+        # unchanged up to rounding; pin them exactly so they stay definitions, not estimates.
+        edges[0] = identity(n)
+        self._pin_points(edges, c.is_point)
+        self._install(_Component(c.frames, c.is_point, edges), new_frames=[], cid=cid)
+        return UpdateResult("loop_closure", c.root, ())
+
+    def _predict(self, e_a: Array, e_b: Array, x: Array, point: bool) -> tuple[Array, Array]:
+        """Predicted observation y and observation z as plain vectors, per sample."""
+        if point:
+            y = qrot(qconj(e_a[:, 3:]), e_b[:, :3] - e_a[:, :3])
+            return y, x
+        h = compound(invert(e_a), e_b)
+        y, q_ref = to_space(h, self.space)
+        z, _ = to_space(x, self.space, q_ref)
+        return y, z
+
+
+def _merge_points(p_g: Array, p_x: Array) -> Array:
+    """Revised merge (eq. 6) of two 3-D point sample sets (the main edge of a point update)."""
+    from mcsm.core.at import _merge_vectors, sample_cov
+
+    cov_c, cov_d, cov_diff = sample_cov(p_g), sample_cov(p_x), sample_cov(p_g - p_x)
+    c_x = 0.5 * (cov_c + cov_d - cov_diff)
+    return _merge_vectors(p_g, p_x, cov_c - c_x, cov_diff)
+
+
+__all__ = ["StochasticMap", "UpdateResult", "RemoveResult", "Submap", "check_frame_name",
+           "McsmError"]
