@@ -25,6 +25,7 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -54,12 +55,17 @@ class Odometry2D:
         ``(dx, dy, dθ)`` in metres and radians.
     cov : (3, 3) float64
         Covariance of ``delta``.
+    additive : bool
+        True (the §6 scenario): the noise is added to ``(dx, dy, dθ)`` in the frame of pose
+        ``i``; converted with :func:`between_noise_2d`. False (the dataset files, read by
+        ``mcsm_client.datasets``): ``cov`` is already over GTSAM's body-frame tangent.
     """
 
     i: int
     j: int
     delta: Array
     cov: Array
+    additive: bool = True
 
 
 @dataclass(frozen=True)
@@ -139,6 +145,11 @@ def gaussian(cov: Array) -> gtsam.noiseModel.Base:
         return gtsam.noiseModel.Diagonal.Sigmas(np.sqrt(np.maximum(diag, MIN_SIGMA**2)))
     floored = cov + np.eye(len(cov)) * MIN_SIGMA**2
     return gtsam.noiseModel.Gaussian.Covariance(floored)
+
+
+def _odometry_noise(odo: Odometry2D) -> gtsam.noiseModel.Base:
+    """Noise model of an odometry or loop edge, by its noise convention."""
+    return between_noise_2d(odo.delta, odo.cov) if odo.additive else gaussian(odo.cov)
 
 
 def between_noise_2d(delta: Array, cov: Array) -> gtsam.noiseModel.Base:
@@ -259,7 +270,7 @@ def _step_factors(
         pose = compose_2d(estimate[odo.i], odo.delta)
         graph.add(
             gtsam.BetweenFactorPose2(
-                X(odo.i), X(odo.j), gtsam.Pose2(*odo.delta), between_noise_2d(odo.delta, odo.cov)
+                X(odo.i), X(odo.j), gtsam.Pose2(*odo.delta), _odometry_noise(odo)
             )
         )
     estimate[step.pose] = pose
@@ -270,7 +281,7 @@ def _step_factors(
                 X(loop.i),
                 X(loop.j),
                 gtsam.Pose2(*loop.delta),
-                between_noise_2d(loop.delta, loop.cov),
+                _odometry_noise(loop),
             )
         )
     for sighting in step.sightings:
@@ -457,6 +468,90 @@ def landmark_covariances(
     """
     marginals = gtsam.Marginals(graph, values)
     return {int(j): np.asarray(marginals.marginalCovariance(L(int(j)))) for j in ids}
+
+
+# --- adapters from the project's data sources -------------------------------------------------
+
+
+def problem_from_scenario(scenario: Any, n_iterations: int | None = None) -> PlanarProblem:
+    """The §6 scenario (``mcsm_client.scenario.Scenario``) as a :class:`PlanarProblem`.
+
+    Step ``k`` creates pose ``k`` (``x0`` at the origin, no sightings), then pose ``k+1`` from
+    ``odometry[k]`` with the sightings ``observations[k]``: the same readings and order as
+    ``run_scenario_on_map`` and the EKF. Odometry noise is additive in the previous pose's frame.
+
+    Parameters
+    ----------
+    scenario : mcsm_client.scenario.Scenario
+    n_iterations : int, optional
+        Use only the first iterations.
+
+    Returns
+    -------
+    PlanarProblem
+    """
+    cfg = scenario.config
+    odo_cov = np.asarray(cfg.odometry_cov, dtype=np.float64)
+    laser_cov = np.asarray(cfg.laser_cov, dtype=np.float64)
+    t_end = (
+        scenario.n_iterations if n_iterations is None else min(n_iterations, scenario.n_iterations)
+    )
+    steps = [Step2D(0, None)]
+    for k in range(t_end):
+        odo = Odometry2D(k, k + 1, np.asarray(scenario.odometry[k], dtype=np.float64), odo_cov)
+        sightings = tuple(
+            Sighting2D(k + 1, int(j), np.asarray(xy, dtype=np.float64), laser_cov)
+            for j, xy in scenario.observations[k]
+        )
+        steps.append(Step2D(k + 1, odo, sightings))
+    return PlanarProblem(steps, np.asarray(scenario.poses[0], dtype=np.float64).copy())
+
+
+def problem_from_dataset(dataset: Any, max_poses: int | None = None) -> PlanarProblem:
+    """A planar ``mcsm_client.datasets.Dataset`` (Victoria Park, g2o 2D, TORO) as a problem.
+
+    Constraints are taken in file order: an ``"odometry"`` constraint opens a new step (its
+    target is the new pose); ``"landmark"`` and ``"loop_closure"`` constraints join the current
+    step (they arrive after the pose they end at exists). Covariances are over the body-frame
+    tangent, GTSAM's own convention (``additive=False``). The first pose is pinned at the origin.
+
+    Parameters
+    ----------
+    dataset : mcsm_client.datasets.Dataset
+        With ``dim == 2``.
+    max_poses : int, optional
+        Stop before the odometry constraint that would create pose number ``max_poses + 1``.
+
+    Returns
+    -------
+    PlanarProblem
+    """
+    if dataset.dim != 2:
+        raise ValueError("problem_from_dataset needs a planar dataset")
+    steps: list[Step2D] = []
+    first = dataset.constraints[0].source
+    current = Step2D(first, None)
+    pending_s: list[Sighting2D] = []
+    pending_l: list[Odometry2D] = []
+    n_poses = 1
+    for c in dataset.constraints:
+        mean = np.asarray(c.mean, dtype=np.float64)
+        cov = np.asarray(c.cov, dtype=np.float64)
+        if c.kind == "odometry":
+            if max_poses is not None and n_poses >= max_poses:
+                break
+            steps.append(Step2D(current.pose, current.odometry, tuple(pending_s), tuple(pending_l)))
+            pending_s, pending_l = [], []
+            current = Step2D(
+                int(c.target), Odometry2D(int(c.source), int(c.target), mean, cov, additive=False)
+            )
+            n_poses += 1
+        elif c.kind == "landmark":
+            pending_s.append(Sighting2D(int(c.source), int(c.target), mean[:2], cov[:2, :2]))
+        else:
+            pending_l.append(Odometry2D(int(c.source), int(c.target), mean, cov, additive=False))
+    steps.append(Step2D(current.pose, current.odometry, tuple(pending_s), tuple(pending_l)))
+    return PlanarProblem(steps, np.zeros(3))
 
 
 # --- pose graphs -----------------------------------------------------------------------------

@@ -20,7 +20,8 @@ class McsmError(Exception):
 
     def to_dict(self) -> dict[str, Any]:
         """The error as a plain dict (``error``, ``message``, ``fields``) for an error reply."""
-        return {"error": type(self).__name__, "message": self.message, "fields": _plain(self.fields)}
+        return {"error": type(self).__name__, "message": self.message,
+                "fields": _plain(self.fields)}
 
     @staticmethod
     def from_dict(d: dict[str, Any]) -> McsmError:

@@ -118,7 +118,7 @@ def check_samples(x: object, n_samples: int | None, width: int) -> Array:
 
 
 def sample_cov(a: Array, b: Array | None = None) -> Array:
-    """Sample (cross-)covariance over axis -2: ``(..., N, p)``, ``(..., N, q)`` -> ``(..., p, q)``."""
+    """Sample (cross-)covariance over axis -2: ``(..., N, p)``, ``(..., N, q)`` -> ``(p, q)``."""
     ac = a - a.mean(axis=-2, keepdims=True)
     bc = ac if b is None else b - b.mean(axis=-2, keepdims=True)
     n = a.shape[-2]

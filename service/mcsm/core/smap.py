@@ -38,8 +38,8 @@ from mcsm.core.at import (
     compound,
     identity,
     invert,
-    merge_correlated,
     mean_and_cov,
+    merge_correlated,
     to_space,
 )
 from mcsm.core.quat import mean_rotation, qconj, qexp, qlog, qmul, qrot
@@ -47,7 +47,6 @@ from mcsm.errors import (
     FrameExists,
     InvalidOperation,
     InvalidSamples,
-    McsmError,
     NotRelated,
     NumericalError,
     SampleCountMismatch,
@@ -89,7 +88,7 @@ class RemoveResult:
 
 @dataclass(frozen=True)
 class Submap:
-    """A whole component: frames (root first), point flags, edges ``(M, N, 7)``, sample order intact."""
+    """A whole component: frames (root first), point flags, edges ``(M, N, 7)`` in sample order."""
 
     root: str
     frames: tuple[str, ...]
@@ -440,7 +439,7 @@ class StochasticMap:
         return UpdateResult("join", c1.root, ())
 
     def _rerooted(self, c: _Component, k: int) -> _Component:
-        """The component re-rooted at index k: every edge becomes (r→k)^R ⊕ (r→l) (PAPER Fig. 3a)."""
+        """The component re-rooted at index k: each edge becomes (r→k)^R ⊕ (r→l) (PAPER Fig. 3a)."""
         x_k_r = invert(c.edges[k])
         edges = compound(x_k_r[None], c.edges)
         edges[k] = identity(self.n_samples)
@@ -556,5 +555,4 @@ def _merge_points(p_g: Array, p_x: Array) -> Array:
     return _merge_vectors(p_g, p_x, cov_c - c_x, cov_diff)
 
 
-__all__ = ["StochasticMap", "UpdateResult", "RemoveResult", "Submap", "check_frame_name",
-           "McsmError"]
+__all__ = ["StochasticMap", "UpdateResult", "RemoveResult", "Submap", "check_frame_name"]
