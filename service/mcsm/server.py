@@ -1,0 +1,350 @@
+"""The map server: Zenoh queryables in front of one worker thread that owns the maps.
+
+Threads and ownership:
+
+* Zenoh callback threads (one per delivery, concurrent) only decode and check the payload with
+  :mod:`mcsm.wire` and put the request on a bounded queue. A full queue is answered at once
+  with a ``LimitExceeded`` ("request queue") error: the client may retry later with the same
+  request id.
+* One worker thread owns every :class:`~mcsm.recording.MapState` and the
+  :class:`~mcsm.recording.Recorder`. It takes requests in arrival order, assigns each applied
+  operation the map's next sequence number, applies it through the core, records it (flushed),
+  and only then acknowledges and publishes the event. Queries, info and exports go through the
+  same worker, so they see a consistent state between two operations.
+
+Keys are listed in ``schemas/KEYS.md``. A failure part-way leaves the map as it was (the core
+guarantees it); rejected inputs are answered with a typed error, logged, counted and not
+recorded. If the recording itself fails the server stops (fail-stop: the recording must hold
+every acknowledged input).
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from mcsm import wire
+from mcsm.core.smap import StochasticMap
+from mcsm.errors import LimitExceeded, McsmError
+from mcsm.recording import DEFAULT_LRU, MapState, Recorder, RecordingError, decode_input, replay
+
+log = logging.getLogger(__name__)
+
+_STOP = object()
+
+
+@dataclass
+class ServerOptions:
+    """Everything ``mcsm serve`` configures (see :func:`mcsm.cli.main`)."""
+
+    maps: list[str] = field(default_factory=lambda: [wire.DEFAULT_MAP])
+    prefix: str = wire.DEFAULT_PREFIX
+    map_options: dict[str, Any] = field(default_factory=lambda: {"n_samples": 1000})
+    record: Path | None = None
+    restore: Path | None = None
+    checkpoint_every: int = 100
+    queue_size: int = 1024
+    lru_size: int = DEFAULT_LRU
+    fsync: bool = False
+
+
+@dataclass
+class _Item:
+    op: str
+    state: MapState
+    query: zenoh.Query
+    key: str
+    request: Any
+    recv_ns: int
+    payload: bytes
+    sender: str
+
+
+class Server:
+    """An mcsm server on an open Zenoh session.
+
+    Call :meth:`start` once, :meth:`close` once (also from a signal handler's thread).
+    """
+
+    def __init__(self, session: zenoh.Session, options: ServerOptions,
+                 progress: Callable[[int, int], None] | None = None) -> None:
+        self.session = session
+        self.opts = options
+        self.server_id = str(session.zid())
+        self.states: dict[str, MapState] = {}
+        self.keys: dict[str, wire.Keys] = {}
+        self.recorder: Recorder | None = None
+        self._queue: queue.Queue[Any] = queue.Queue(maxsize=max(1, options.queue_size))
+        self._entities: list[Any] = []
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._worker: threading.Thread | None = None
+        self._progress = progress
+        self._closed = False
+        self._close_lock = threading.Lock()
+        self.failed = threading.Event()  # set when the worker hit a fatal error
+        self._reject_lock = threading.Lock()
+
+    # ---------------------------------------------------------------- lifecycle
+    def start(self) -> None:
+        """Restore (if asked), open the recording, declare keys, start the worker.
+
+        Raises
+        ------
+        RecordingError
+            If the restore file diverges or the record path exists.
+        """
+        o = self.opts
+        for name in o.maps:
+            wire.map_keys(name, o.prefix)  # check names before doing any work
+        if o.record is not None:
+            if o.restore is not None and Path(o.record).resolve() == Path(o.restore).resolve():
+                raise RecordingError(str(o.record), "--record must differ from --restore "
+                                     "(the restored server writes a new, self-contained file)")
+            self.recorder = Recorder(o.record, fsync=o.fsync)
+        if o.restore is not None:
+            rep = replay(o.restore, sink=self.recorder, progress=self._progress,
+                         lru_size=o.lru_size, server_id=self.server_id)
+            if rep.divergence is not None:
+                raise RecordingError(str(o.restore), f"replay diverged: {rep.divergence}")
+            self.states.update(rep.states)
+            log.info("restored %d inputs of %d map(s) from %s (%s)", rep.n_inputs,
+                     len(rep.states), o.restore,
+                     "complete" if rep.complete else f"truncated: {rep.tail_error}")
+            for st in self.states.values():
+                if self.recorder is not None:
+                    self.recorder.checkpoint(st.name, st.seq, st.map.state_digest(), "restore")
+        for name in o.maps:
+            if name in self.states:
+                if self.states[name].map.options() != StochasticMap.from_options(
+                        dict(o.map_options)).options():
+                    log.warning("map %r: using the restored options %s", name,
+                                self.states[name].map.options())
+                continue
+            st = MapState(name, StochasticMap.from_options(dict(o.map_options)), o.lru_size)
+            self.states[name] = st
+            if self.recorder is not None:
+                self.recorder.config(st, o.checkpoint_every, server_id=self.server_id)
+        self._worker = threading.Thread(target=self._run, name="mcsm-worker", daemon=True)
+        self._worker.start()
+        for name, st in self.states.items():
+            self._declare(name, st)
+
+    def _declare(self, name: str, st: MapState) -> None:
+        k = wire.map_keys(name, self.opts.prefix)
+        self.keys[name] = k
+        s = self.session
+
+        def bind(op: str, key: str) -> Callable[[zenoh.Query], None]:
+            return lambda query: self._on_query(op, st, key, query)
+
+        for op, key in (("update", k.update), ("remove", k.remove), ("query", k.query),
+                        ("info", k.info), ("submap", k.submap)):
+            self._entities.append(s.declare_queryable(key, bind(op, key), complete=True))
+        self._publishers[name] = s.declare_publisher(k.events, express=True)
+        self._entities.append(s.liveliness().declare_token(k.alive(self.server_id)))
+        log.info("serving map %r on %s/%s/* (N=%d, seq=%d)", name, self.opts.prefix, name,
+                 st.n_samples, st.seq)
+
+    def close(self) -> None:
+        """Stop taking requests, answer those queued, write final checkpoints, close the file."""
+        with self._close_lock:
+            if self._closed:
+                return
+            self._closed = True
+        for ent in self._entities:
+            try:
+                ent.undeclare()
+            except zenoh.ZError as exc:
+                log.debug("undeclare: %s", exc)
+        self._entities.clear()
+        if self._worker is not None and self._worker.is_alive():
+            self._queue.put(_STOP)
+            self._worker.join(timeout=60.0)
+            if self._worker.is_alive():
+                log.error("worker did not stop within 60 s")
+        for pub in self._publishers.values():
+            try:
+                pub.undeclare()
+            except zenoh.ZError as exc:
+                log.debug("undeclare: %s", exc)
+        if self.recorder is not None and not self.recorder.closed:
+            if not self.failed.is_set():
+                for st in self.states.values():
+                    self.recorder.checkpoint(st.name, st.seq, st.map.state_digest(), "close")
+            self.recorder.close()
+            log.info("recording closed: %s (%d inputs)", self.recorder.path,
+                     self.recorder.n_inputs)
+
+    # ---------------------------------------------------------------- zenoh callbacks
+    def _on_query(self, op: str, st: MapState, key: str, query: zenoh.Query) -> None:
+        """Decode, check and enqueue; never touches the map (runs on a Zenoh thread)."""
+        recv_ns = time.time_ns()
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        try:
+            req: Any
+            if op == "update":
+                req = wire.decode_update(payload, st.n_samples)
+            elif op == "remove":
+                req = wire.decode_remove(payload)
+            elif op == "query":
+                req = wire.decode_query(payload)
+            elif op == "info":
+                req = wire.decode_info(payload) if payload else wire.InfoRequest()
+            else:
+                req = wire.decode_submap_request(payload, st.n_samples)
+                op = "import" if isinstance(req, wire.SubmapImportRequest) else "export"
+        except McsmError as exc:
+            self._reject(st, query, exc, "", op)
+            query.drop()
+            return
+        sender = getattr(req, "sender", "") or _source(query)
+        item = _Item(op, st, query, key, req, recv_ns, payload, sender)
+        try:
+            self._queue.put_nowait(item)
+        except queue.Full:
+            self._reject(st, query, LimitExceeded("request queue length", self._queue.qsize(),
+                                                  self._queue.maxsize),
+                         getattr(req, "request_id", ""), op)
+            query.drop()
+
+    def _reject(self, st: MapState, query: zenoh.Query, err: McsmError, request_id: str,
+                op: str) -> None:
+        with self._reject_lock:
+            st.count_rejected(err)
+        log.info("rejected %s on map %r: %s: %s", op, st.name, type(err).__name__, err)
+        try:
+            query.reply_err(wire.encode_error(err, request_id))
+        except zenoh.ZError as exc:
+            log.warning("could not send an error reply: %s", exc)
+
+    # ---------------------------------------------------------------- the worker
+    def _run(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is _STOP:
+                return
+            try:
+                self._handle(item)
+            except Exception:  # the outermost loop: log, answer, keep serving
+                log.exception("internal error on %s", item.op)
+                self._reply_err(item, McsmError("internal error (see the server log)"))
+            finally:
+                item.query.drop()
+
+    def _reply(self, item: _Item, payload: bytes) -> None:
+        try:
+            item.query.reply(item.key, payload, express=True)
+        except zenoh.ZError as exc:
+            log.warning("could not reply to %s: %s", item.op, exc)
+
+    def _reply_err(self, item: _Item, err: McsmError) -> None:
+        try:
+            item.query.reply_err(wire.encode_error(err, getattr(item.request, "request_id", "")))
+        except zenoh.ZError as exc:
+            log.warning("could not send an error reply: %s", exc)
+
+    def _handle(self, item: _Item) -> None:
+        st = item.state
+        if self.failed.is_set():
+            self._reply_err(item, McsmError("server stopped: recording failed"))
+            return
+        if item.op in ("update", "remove", "import"):
+            self._apply(item)
+        elif item.op == "query":
+            req = item.request
+            try:
+                if req.want == "marginal":
+                    mean, cov = st.map.marginal(req.a, req.b)
+                    r = wire.QueryReply(req.request_id, req.a, req.b, st.seq, mean=mean, cov=cov)
+                else:
+                    r = wire.QueryReply(req.request_id, req.a, req.b, st.seq,
+                                        samples=st.map.query(req.a, req.b))
+            except McsmError as exc:
+                self._reject(st, item.query, exc, req.request_id, item.op)
+                return
+            self._reply(item, wire.encode_query_reply(r))
+        elif item.op == "info":
+            self._reply(item, wire.encode_info_reply(self.info(st)))
+        elif item.op == "export":
+            req = item.request
+            try:
+                sub = st.map.export_component(req.frame)
+            except McsmError as exc:
+                self._reject(st, item.query, exc, req.request_id, item.op)
+                return
+            self._reply(item, wire.encode_submap_reply(
+                wire.SubmapReply(req.request_id, st.seq, wire.submap_from_core(sub))))
+        else:
+            raise McsmError(f"unknown operation {item.op!r}")
+
+    def _apply(self, item: _Item) -> None:
+        st, req = item.state, item.request
+        dup = st.lookup(req.request_id)
+        if dup is not None:
+            log.info("map %r: request %s already applied as seq %d; resending its ack",
+                     st.name, req.request_id, dup.seq)
+            self._reply(item, wire.encode_ack(dup))
+            return
+        try:
+            ack = st.apply(item.op, req)
+        except McsmError as exc:
+            self._reject(st, item.query, exc, req.request_id, item.op)
+            return
+        digest: str | None = None
+        try:
+            if self.recorder is not None:
+                self.recorder.input(item.op, st.name, ack.seq, item.recv_ns, item.sender,
+                                    req.request_id, item.payload)
+                if ack.seq % self.opts.checkpoint_every == 0:
+                    digest = st.map.state_digest()
+                    self.recorder.checkpoint(st.name, ack.seq, digest, "periodic")
+        except (OSError, ValueError) as exc:
+            # The map holds an input the file does not: stop rather than acknowledge it.
+            log.critical("recording failed at seq %d of map %r: %s; stopping", ack.seq,
+                         st.name, exc)
+            self.failed.set()
+            self._reply_err(item, McsmError(f"recording failed: {exc}"))
+            return
+        self._reply(item, wire.encode_ack(ack))
+        frames = ack.frames_added or ack.frames_removed
+        if item.op == "update":
+            frames = (req.a, req.b)
+        ev = wire.Event(map=st.name, seq=ack.seq, op=item.op, kind=ack.kind,
+                        frames=tuple(frames), component=ack.component, time_ns=time.time_ns(),
+                        digest=digest)
+        try:
+            self._publishers[st.name].put(wire.encode_event(ev))
+        except zenoh.ZError as exc:
+            log.warning("could not publish event %d: %s", ack.seq, exc)
+
+    def info(self, st: MapState) -> wire.MapInfo:
+        """The info reply of one map (call from the worker, or when nothing else runs)."""
+        m = st.map
+        with self._reject_lock:
+            rejected, by_error = st.rejected, dict(st.rejected_by_error)
+        return wire.MapInfo(
+            map=st.name, n_samples=st.n_samples, options=m.options(), seq=st.seq,
+            digest=m.state_digest(), frames=tuple(m.frames()),
+            components={r: tuple(m.component(r)) for r in m.components()},
+            rejected=rejected, rejected_by_error=by_error, server_id=self.server_id,
+            recording=str(self.recorder.path) if self.recorder is not None else "",
+            queue_length=self._queue.qsize())
+
+
+def _source(query: zenoh.Query) -> str:
+    try:
+        si = query.source_info
+    except (AttributeError, zenoh.ZError):
+        return ""
+    return str(si.source_id) if si is not None else ""
+
+
+__all__ = ["Server", "ServerOptions", "decode_input"]

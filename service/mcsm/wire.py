@@ -1,0 +1,757 @@
+"""The wire contract: msgpack payloads <-> checked, frozen dataclasses.
+
+This module is the only place where bytes become arrays. Every decoder checks, in order: the
+payload length before unpacking (and msgpack's ``max_*_len`` limits), that the top level is a
+map, the version field, the set of keys, the types of scalar fields, frame names, and sample
+arrays (dtype, shape, the map's N, byte length, finiteness, quaternion norm). A decoder returns
+a frozen dataclass or raises an :class:`mcsm.errors.McsmError` subclass; it never returns a
+half-checked value. The JSON Schemas in ``schemas/`` describe the same messages (binary fields
+shown as base64 strings, Foxglove's convention for JSON views).
+
+Arrays travel as ``{"dtype": "<f8", "shape": [...], "data": <raw little-endian bytes>}``,
+never pickle or numpy's own format. Sample columns are ``x y z qw qx qy qz`` (scalar-first
+quaternion, PAPER §1); point observations are ``(N, 3)`` ``x y z``.
+
+The server and the clients both import this module, so what one side encodes the other side
+decodes with the very same code. Replay decodes recorded requests through it too.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal, cast
+
+import msgpack
+import numpy as np
+import numpy.typing as npt
+
+from mcsm.errors import (
+    BadMessage,
+    InvalidSamples,
+    LimitExceeded,
+    McsmError,
+    SampleCountMismatch,
+    UnsupportedVersion,
+)
+
+Samples = npt.NDArray[np.float64]
+
+VERSION = 1
+"""Protocol version written in the ``v`` field of every message."""
+
+DEFAULT_PREFIX = "mcsm"
+DEFAULT_MAP = "default"
+
+MAX_PAYLOAD_BYTES = 8 * 1024 * 1024
+"""Largest request the server decodes (it also caps Zenoh's ``max_message_size``)."""
+MAX_REPLY_BYTES = 1024 * 1024 * 1024
+"""Largest reply a client decodes (submap exports of big maps are large)."""
+MAX_SAMPLES = 100_000
+MAX_SUBMAP_FRAMES = 100_000
+MAX_ID_CHARS = 128
+MAX_SENDER_CHARS = 256
+QUAT_NORM_TOL = 1e-6
+"""Tolerance on ``| |q|^2 - 1 |`` for every sample's quaternion."""
+
+F8 = np.dtype("<f8")
+_FRAME_RE = re.compile(r"[A-Za-z0-9_.:+-]{1,128}")
+_MAP_RE = re.compile(r"[A-Za-z0-9_.+-]{1,64}")
+_PREFIX_RE = re.compile(r"[A-Za-z0-9_.+-]{1,64}(/[A-Za-z0-9_.+-]{1,64}){0,7}")
+FRAME_RULE = "a frame name of 1-128 characters from [A-Za-z0-9_.:+-]"
+
+QueryWant = Literal["samples", "marginal"]
+
+
+# --------------------------------------------------------------------------------------------
+# Key expressions
+# --------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Keys:
+    """The key expressions of one map (``<prefix>/<map>/...``); see ``schemas/KEYS.md``."""
+
+    prefix: str
+    map: str
+
+    def _k(self, leaf: str) -> str:
+        return f"{self.prefix}/{self.map}/{leaf}"
+
+    @property
+    def update(self) -> str:
+        return self._k("update")
+
+    @property
+    def remove(self) -> str:
+        return self._k("remove")
+
+    @property
+    def query(self) -> str:
+        return self._k("query")
+
+    @property
+    def info(self) -> str:
+        return self._k("info")
+
+    @property
+    def submap(self) -> str:
+        return self._k("submap")
+
+    @property
+    def events(self) -> str:
+        return self._k("events")
+
+    def alive(self, server_id: str) -> str:
+        """Liveliness token of one live server serving this map."""
+        return self._k(f"alive/{server_id}")
+
+    @property
+    def alive_any(self) -> str:
+        return self._k("alive/*")
+
+
+def map_keys(map_name: str = DEFAULT_MAP, prefix: str = DEFAULT_PREFIX) -> Keys:
+    """Key expressions of map ``map_name`` under ``prefix``; checks both names.
+
+    Raises
+    ------
+    BadMessage
+        If the map name is not 1-64 characters from ``[A-Za-z0-9_.+-]`` or the prefix is not
+        1-8 such segments joined by ``/``.
+    """
+    if not isinstance(map_name, str) or not _MAP_RE.fullmatch(map_name):
+        raise BadMessage("map", "a map name of 1-64 characters from [A-Za-z0-9_.+-]",
+                         _short(map_name))
+    if not isinstance(prefix, str) or not _PREFIX_RE.fullmatch(prefix):
+        raise BadMessage("prefix", "1-8 segments of [A-Za-z0-9_.+-] joined by '/'",
+                         _short(prefix))
+    return Keys(prefix=prefix, map=map_name)
+
+
+# --------------------------------------------------------------------------------------------
+# Messages
+# --------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class UpdateRequest:
+    """An AT ``a -> b`` as N samples ``(N, 7)``, or a point ``b`` seen from ``a`` ``(N, 3)``."""
+
+    request_id: str
+    a: str
+    b: str
+    samples: Samples
+    sender: str = ""
+
+    @property
+    def point(self) -> bool:
+        return bool(self.samples.shape[1] == 3)
+
+
+@dataclass(frozen=True)
+class RemoveRequest:
+    request_id: str
+    frame: str
+    sender: str = ""
+
+
+@dataclass(frozen=True)
+class QueryRequest:
+    request_id: str
+    a: str
+    b: str
+    want: QueryWant = "samples"
+
+
+@dataclass(frozen=True)
+class InfoRequest:
+    request_id: str = ""
+
+
+@dataclass(frozen=True)
+class SubmapData:
+    """One component on the wire: names, point flags and edges ``(M, N, 7)`` (root first).
+
+    ``edges[i]`` is the AT root -> ``frames[i]``; ``edges[0]`` is the identity. It converts
+    to and from the core's ``Submap`` with :func:`submap_from_core` / :meth:`to_core`.
+    """
+
+    root: str
+    frames: tuple[str, ...]
+    is_point: tuple[bool, ...]
+    edges: Samples
+
+    def to_core(self) -> Any:
+        from mcsm.core.smap import Submap  # the core is numpy-only; imported on use
+
+        return Submap(root=self.root, frames=tuple(self.frames),
+                      is_point=tuple(self.is_point), edges=self.edges)
+
+
+def submap_from_core(sub: Any) -> SubmapData:
+    """Wrap the core's ``Submap`` (attributes root, frames, is_point, edges) for the wire."""
+    return SubmapData(root=str(sub.root), frames=tuple(str(f) for f in sub.frames),
+                      is_point=tuple(bool(p) for p in sub.is_point),
+                      edges=np.ascontiguousarray(sub.edges, dtype=F8))
+
+
+@dataclass(frozen=True)
+class SubmapExportRequest:
+    request_id: str
+    frame: str
+
+
+@dataclass(frozen=True)
+class SubmapImportRequest:
+    request_id: str
+    submap: SubmapData
+    sender: str = ""
+
+
+@dataclass(frozen=True)
+class Ack:
+    """The server's acknowledgement of an applied operation.
+
+    ``seq`` is the map's sequence number of the operation (1, 2, ... in apply order);
+    ``kind`` is the core's result kind (``new_component``, ``new_frame``, ``join``,
+    ``loop_closure``, ``import``, ``remove``); ``duplicate`` is true when the request id had
+    already been applied and this is the original acknowledgement, sent again.
+    """
+
+    request_id: str
+    seq: int
+    op: str
+    kind: str
+    component: str | None
+    frames_added: tuple[str, ...] = ()
+    frames_removed: tuple[str, ...] = ()
+    duplicate: bool = False
+
+
+@dataclass(frozen=True)
+class QueryReply:
+    request_id: str
+    a: str
+    b: str
+    seq: int
+    samples: Samples | None = None
+    mean: Samples | None = None
+    cov: Samples | None = None
+
+
+@dataclass(frozen=True)
+class MapInfo:
+    """What ``<prefix>/<map>/info`` answers."""
+
+    map: str
+    n_samples: int
+    options: dict[str, Any]
+    seq: int
+    digest: str
+    frames: tuple[str, ...]
+    components: dict[str, tuple[str, ...]]
+    rejected: int
+    rejected_by_error: dict[str, int]
+    server_id: str
+    recording: str
+    queue_length: int = 0
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.frames)
+
+
+@dataclass(frozen=True)
+class SubmapReply:
+    request_id: str
+    seq: int
+    submap: SubmapData
+
+
+@dataclass(frozen=True)
+class Event:
+    """One applied operation, as published on ``<prefix>/<map>/events``."""
+
+    map: str
+    seq: int
+    op: str
+    kind: str
+    frames: tuple[str, ...]
+    component: str | None
+    time_ns: int
+    digest: str | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+# --------------------------------------------------------------------------------------------
+# Low-level helpers
+# --------------------------------------------------------------------------------------------
+
+def _short(x: Any, n: int = 48) -> str:
+    s = repr(x)
+    return s if len(s) <= n else s[: n - 3] + "..."
+
+
+def pack(obj: Mapping[str, Any]) -> bytes:
+    """msgpack-encode a message map (adds nothing; callers put ``v`` in)."""
+    return cast(bytes, msgpack.packb(obj, use_bin_type=True))
+
+
+def unpack(payload: bytes | bytearray | memoryview, *, max_bytes: int = MAX_PAYLOAD_BYTES,
+           ) -> dict[str, Any]:
+    """Bounded msgpack decode of one message map; checks the version.
+
+    Raises
+    ------
+    LimitExceeded
+        If the payload is longer than ``max_bytes``.
+    BadMessage
+        If it is not one complete msgpack map with string keys.
+    UnsupportedVersion
+        If ``v`` is not :data:`VERSION`.
+    """
+    if not isinstance(payload, (bytes, bytearray, memoryview)):
+        raise BadMessage("payload", "bytes", type(payload).__name__)
+    n = len(payload)
+    if n > max_bytes:
+        raise LimitExceeded("payload bytes", n, max_bytes)
+    if n == 0:
+        raise BadMessage("payload", "a msgpack map", "0 bytes")
+    try:
+        obj = msgpack.unpackb(
+            payload, raw=False, strict_map_key=True, use_list=True,
+            max_bin_len=max_bytes, max_str_len=64 * 1024, max_array_len=MAX_SUBMAP_FRAMES,
+            max_map_len=64, max_ext_len=0,
+        )
+    except (ValueError, TypeError, OverflowError, msgpack.UnpackException) as exc:
+        # ExtraData, FormatError, StackError, "incomplete input", bad UTF-8 are ValueErrors
+        raise BadMessage("payload", "one msgpack map", f"undecodable ({type(exc).__name__})",
+                         ) from None
+    if not isinstance(obj, dict):
+        raise BadMessage("payload", "a msgpack map", type(obj).__name__)
+    check_version(obj)
+    return obj
+
+
+def check_version(obj: Mapping[str, Any]) -> None:
+    """Refuse a message without ``v`` or with a version other than :data:`VERSION`."""
+    if "v" not in obj:
+        raise BadMessage("v", f"the protocol version {VERSION}", "missing")
+    v = obj["v"]
+    if type(v) is not int or v != VERSION:
+        raise UnsupportedVersion(v, VERSION)
+
+
+def _keys(obj: Mapping[str, Any], required: Sequence[str], optional: Sequence[str] = ()) -> None:
+    for k in required:
+        if k not in obj:
+            raise BadMessage(k, "a required field", "missing")
+    allowed = set(required) | set(optional) | {"v"}
+    for k in obj:
+        if k not in allowed:
+            raise BadMessage(str(k)[:40], "no unknown fields", "an unknown field")
+
+
+def _str(obj: Mapping[str, Any], key: str, *, max_chars: int, default: str | None = None,
+         min_chars: int = 0) -> str:
+    if key not in obj and default is not None:
+        return default
+    val = obj.get(key)
+    if not isinstance(val, str):
+        raise BadMessage(key, "a string", type(val).__name__)
+    if len(val) > max_chars:
+        raise LimitExceeded(f"{key} length", len(val), max_chars)
+    if len(val) < min_chars:
+        raise BadMessage(key, f"at least {min_chars} characters", len(val))
+    return val
+
+
+def _int(obj: Mapping[str, Any], key: str, *, lo: int = 0) -> int:
+    val = obj.get(key)
+    if type(val) is not int or val < lo:
+        raise BadMessage(key, f"an integer >= {lo}", _short(val))
+    return int(val)
+
+
+def check_frame(name: Any, fieldname: str = "frame") -> str:
+    """Return ``name`` if it is a valid frame name, else raise :class:`BadMessage`."""
+    if not isinstance(name, str) or not _FRAME_RE.fullmatch(name):
+        raise BadMessage(fieldname, FRAME_RULE, _short(name))
+    return name
+
+
+def _request_id(obj: Mapping[str, Any]) -> str:
+    return _str(obj, "id", max_chars=MAX_ID_CHARS, min_chars=1)
+
+
+# --------------------------------------------------------------------------------------------
+# Arrays
+# --------------------------------------------------------------------------------------------
+
+def pack_array(a: npt.ArrayLike) -> dict[str, Any]:
+    """An array as ``{"dtype": "<f8", "shape": [...], "data": bytes}`` (little-endian f8)."""
+    arr = np.ascontiguousarray(a, dtype=F8)
+    return {"dtype": "<f8", "shape": list(arr.shape), "data": arr.tobytes()}
+
+
+def unpack_array(obj: Any, fieldname: str, ndim: int, *, max_elems: int) -> Samples:
+    """Check an array map and return a new writable float64 array (finiteness checked)."""
+    if not isinstance(obj, dict):
+        raise BadMessage(fieldname, "an array map {dtype, shape, data}", type(obj).__name__)
+    if set(obj) != {"dtype", "shape", "data"}:
+        raise BadMessage(fieldname, "exactly the keys dtype, shape, data",
+                         sorted(str(k) for k in obj))
+    if obj["dtype"] != "<f8":
+        raise BadMessage(f"{fieldname}.dtype", "'<f8' (little-endian float64)",
+                         _short(obj["dtype"]))
+    shape = obj["shape"]
+    if (not isinstance(shape, list) or len(shape) != ndim
+            or not all(type(s) is int and s >= 0 for s in shape)):
+        raise BadMessage(f"{fieldname}.shape", f"a list of {ndim} non-negative integers",
+                         _short(shape))
+    n_elems = math.prod(shape)
+    if n_elems > max_elems:
+        raise LimitExceeded(f"{fieldname} elements", n_elems, max_elems)
+    data = obj["data"]
+    if not isinstance(data, bytes):
+        raise BadMessage(f"{fieldname}.data", "binary (msgpack bin)", type(data).__name__)
+    if len(data) != 8 * n_elems:
+        raise BadMessage(f"{fieldname}.data", f"{8 * n_elems} bytes for shape {shape}",
+                         f"{len(data)} bytes")
+    arr = np.frombuffer(data, dtype=F8).reshape(shape).copy()
+    if not np.isfinite(arr).all():
+        raise InvalidSamples(f"{fieldname} holds non-finite values (NaN or inf)")
+    return arr
+
+
+def check_quaternions(q: Samples, fieldname: str = "samples") -> None:
+    """Every quaternion ``q[..., 0:4]`` must satisfy ``| |q|^2 - 1 | <= QUAT_NORM_TOL``."""
+    err = np.abs(np.einsum("...i,...i->...", q, q) - 1.0)
+    if err.size and float(err.max()) > QUAT_NORM_TOL:
+        idx = np.unravel_index(int(np.argmax(err)), err.shape)
+        raise InvalidSamples(
+            f"{fieldname}: quaternion of sample {tuple(int(i) for i in idx)} has "
+            f"|q|^2 - 1 = {float(err[idx]):.3g} (tolerance {QUAT_NORM_TOL})")
+
+
+def decode_samples(obj: Any, n_samples: int | None, widths: tuple[int, ...] = (7, 3),
+                   fieldname: str = "samples") -> Samples:
+    """Check a sample-set array map: shape ``(N, w)``, N the map's, finite, unit quaternions."""
+    if isinstance(obj, dict) and isinstance(obj.get("shape"), list) and len(obj["shape"]) == 2:
+        n, w = obj["shape"]
+        if type(w) is int and w not in widths:
+            raise BadMessage(f"{fieldname}.shape", f"(N, {' or '.join(map(str, widths))})",
+                             _short(obj["shape"]))
+        if type(n) is int and n > MAX_SAMPLES:
+            raise LimitExceeded("samples", n, MAX_SAMPLES)
+        if type(n) is int and n_samples is not None and n != n_samples:
+            raise SampleCountMismatch(n_samples, n)
+        if type(n) is int and n == 0:
+            raise BadMessage(f"{fieldname}.shape", "at least one sample", 0)
+    arr = unpack_array(obj, fieldname, 2, max_elems=MAX_SAMPLES * 7)
+    if arr.shape[1] == 7:
+        check_quaternions(arr[:, 3:7], fieldname)
+    return arr
+
+
+# --------------------------------------------------------------------------------------------
+# Requests: encode (clients) and decode (server, replay)
+# --------------------------------------------------------------------------------------------
+
+def encode_update(request_id: str, a: str, b: str, samples: npt.ArrayLike,
+                  sender: str = "") -> bytes:
+    """An update request: AT ``a -> b`` ``(N, 7)`` or point ``b`` from ``a`` ``(N, 3)``."""
+    d: dict[str, Any] = {"v": VERSION, "id": request_id, "a": a, "b": b,
+                         "samples": pack_array(samples)}
+    if sender:
+        d["sender"] = sender
+    return pack(d)
+
+
+def decode_update(payload: bytes, n_samples: int | None, *,
+                  max_bytes: int = MAX_PAYLOAD_BYTES) -> UpdateRequest:
+    """Decode and check an update request for a map of ``n_samples`` samples.
+
+    Raises
+    ------
+    LimitExceeded, BadMessage, UnsupportedVersion, SampleCountMismatch, InvalidSamples
+    """
+    d = unpack(payload, max_bytes=max_bytes)
+    _keys(d, ("id", "a", "b", "samples"), ("sender",))
+    rid = _request_id(d)
+    a = check_frame(d["a"], "a")
+    b = check_frame(d["b"], "b")
+    sender = _str(d, "sender", max_chars=MAX_SENDER_CHARS, default="")
+    samples = decode_samples(d["samples"], n_samples)
+    return UpdateRequest(request_id=rid, a=a, b=b, samples=samples, sender=sender)
+
+
+def encode_remove(request_id: str, frame: str, sender: str = "") -> bytes:
+    d: dict[str, Any] = {"v": VERSION, "id": request_id, "frame": frame}
+    if sender:
+        d["sender"] = sender
+    return pack(d)
+
+
+def decode_remove(payload: bytes, *, max_bytes: int = MAX_PAYLOAD_BYTES) -> RemoveRequest:
+    d = unpack(payload, max_bytes=max_bytes)
+    _keys(d, ("id", "frame"), ("sender",))
+    return RemoveRequest(request_id=_request_id(d), frame=check_frame(d["frame"]),
+                         sender=_str(d, "sender", max_chars=MAX_SENDER_CHARS, default=""))
+
+
+def encode_query(request_id: str, a: str, b: str, want: QueryWant = "samples") -> bytes:
+    return pack({"v": VERSION, "id": request_id, "a": a, "b": b, "want": want})
+
+
+def decode_query(payload: bytes, *, max_bytes: int = MAX_PAYLOAD_BYTES) -> QueryRequest:
+    d = unpack(payload, max_bytes=max_bytes)
+    _keys(d, ("id", "a", "b"), ("want",))
+    want = d.get("want", "samples")
+    if want not in ("samples", "marginal"):
+        raise BadMessage("want", "'samples' or 'marginal'", _short(want))
+    return QueryRequest(request_id=_request_id(d), a=check_frame(d["a"], "a"),
+                        b=check_frame(d["b"], "b"), want=want)
+
+
+def encode_info(request_id: str = "") -> bytes:
+    d: dict[str, Any] = {"v": VERSION}
+    if request_id:
+        d["id"] = request_id
+    return pack(d)
+
+
+def decode_info(payload: bytes, *, max_bytes: int = MAX_PAYLOAD_BYTES) -> InfoRequest:
+    d = unpack(payload, max_bytes=max_bytes)
+    _keys(d, (), ("id",))
+    return InfoRequest(request_id=_str(d, "id", max_chars=MAX_ID_CHARS, default=""))
+
+
+def encode_submap_export(request_id: str, frame: str) -> bytes:
+    return pack({"v": VERSION, "id": request_id, "op": "export", "frame": frame})
+
+
+def _pack_submap(sub: SubmapData) -> dict[str, Any]:
+    return {"root": sub.root, "frames": list(sub.frames), "is_point": list(sub.is_point),
+            "edges": pack_array(sub.edges)}
+
+
+def encode_submap_import(request_id: str, submap: SubmapData | Any, sender: str = "") -> bytes:
+    """An import request; ``submap`` is a :class:`SubmapData` or the core's ``Submap``."""
+    sub = submap if isinstance(submap, SubmapData) else submap_from_core(submap)
+    d: dict[str, Any] = {"v": VERSION, "id": request_id, "op": "import",
+                         "submap": _pack_submap(sub)}
+    if sender:
+        d["sender"] = sender
+    return pack(d)
+
+
+def decode_submap_data(obj: Any, n_samples: int | None) -> SubmapData:
+    """Check a submap map: unique valid names, flags, edges ``(M, N, 7)``, unit quaternions."""
+    if not isinstance(obj, dict):
+        raise BadMessage("submap", "a map {root, frames, is_point, edges}", type(obj).__name__)
+    _keys(obj, ("root", "frames", "is_point", "edges"))
+    root = check_frame(obj["root"], "submap.root")
+    frames = obj["frames"]
+    flags = obj["is_point"]
+    if not isinstance(frames, list) or not frames:
+        raise BadMessage("submap.frames", "a non-empty list of frame names", _short(frames))
+    if len(frames) > MAX_SUBMAP_FRAMES:
+        raise LimitExceeded("submap frames", len(frames), MAX_SUBMAP_FRAMES)
+    for f in frames:
+        check_frame(f, "submap.frames")
+    if len(set(frames)) != len(frames):
+        raise BadMessage("submap.frames", "unique names", "duplicates")
+    if frames[0] != root:
+        raise BadMessage("submap.frames", "the root first", _short(frames[0]))
+    if (not isinstance(flags, list) or len(flags) != len(frames)
+            or not all(isinstance(p, bool) for p in flags)):
+        raise BadMessage("submap.is_point", f"a list of {len(frames)} booleans", _short(flags))
+    e = obj["edges"]
+    if isinstance(e, dict) and isinstance(e.get("shape"), list) and len(e["shape"]) == 3:
+        m, n, w = e["shape"]
+        if type(n) is int and n_samples is not None and n != n_samples:
+            raise SampleCountMismatch(n_samples, n)
+        if m != len(frames) or w != 7:
+            raise BadMessage("submap.edges.shape", f"({len(frames)}, N, 7)", _short(e["shape"]))
+    edges = unpack_array(e, "submap.edges", 3,
+                         max_elems=MAX_PAYLOAD_BYTES // 8 if n_samples is not None
+                         else MAX_REPLY_BYTES // 8)
+    if edges.shape[0] != len(frames) or edges.shape[2] != 7 or edges.shape[1] == 0:
+        raise BadMessage("submap.edges.shape", f"({len(frames)}, N, 7)", list(edges.shape))
+    check_quaternions(edges[..., 3:7], "submap.edges")
+    return SubmapData(root=root, frames=tuple(frames), is_point=tuple(flags), edges=edges)
+
+
+def decode_submap_request(payload: bytes, n_samples: int | None, *,
+                          max_bytes: int = MAX_PAYLOAD_BYTES,
+                          ) -> SubmapExportRequest | SubmapImportRequest:
+    """Decode a request on ``<prefix>/<map>/submap``: ``op`` is ``export`` or ``import``."""
+    d = unpack(payload, max_bytes=max_bytes)
+    op = d.get("op")
+    if op == "export":
+        _keys(d, ("id", "op", "frame"))
+        return SubmapExportRequest(request_id=_request_id(d), frame=check_frame(d["frame"]))
+    if op == "import":
+        _keys(d, ("id", "op", "submap"), ("sender",))
+        rid = _request_id(d)
+        sender = _str(d, "sender", max_chars=MAX_SENDER_CHARS, default="")
+        return SubmapImportRequest(request_id=rid, submap=decode_submap_data(d["submap"],
+                                                                              n_samples),
+                                   sender=sender)
+    raise BadMessage("op", "'export' or 'import'", _short(op))
+
+
+# --------------------------------------------------------------------------------------------
+# Replies: encode (server) and decode (clients)
+# --------------------------------------------------------------------------------------------
+
+def encode_ack(ack: Ack) -> bytes:
+    return pack({"v": VERSION, "id": ack.request_id, "seq": ack.seq, "op": ack.op,
+                 "kind": ack.kind, "component": ack.component,
+                 "frames_added": list(ack.frames_added),
+                 "frames_removed": list(ack.frames_removed), "duplicate": ack.duplicate})
+
+
+def _str_list(obj: Any, fieldname: str) -> tuple[str, ...]:
+    if not isinstance(obj, list) or not all(isinstance(s, str) for s in obj):
+        raise BadMessage(fieldname, "a list of strings", _short(obj))
+    return tuple(obj)
+
+
+def decode_ack(payload: bytes) -> Ack:
+    d = unpack(payload, max_bytes=MAX_REPLY_BYTES)
+    _keys(d, ("id", "seq", "op", "kind", "component", "frames_added", "frames_removed",
+              "duplicate"))
+    comp = d["component"]
+    if comp is not None and not isinstance(comp, str):
+        raise BadMessage("component", "a frame name or nil", _short(comp))
+    return Ack(request_id=_str(d, "id", max_chars=MAX_ID_CHARS), seq=_int(d, "seq"),
+               op=_str(d, "op", max_chars=32), kind=_str(d, "kind", max_chars=32),
+               component=comp, frames_added=_str_list(d["frames_added"], "frames_added"),
+               frames_removed=_str_list(d["frames_removed"], "frames_removed"),
+               duplicate=bool(d["duplicate"]))
+
+
+def encode_query_reply(r: QueryReply) -> bytes:
+    d: dict[str, Any] = {"v": VERSION, "id": r.request_id, "a": r.a, "b": r.b, "seq": r.seq}
+    if r.samples is not None:
+        d["samples"] = pack_array(r.samples)
+    if r.mean is not None and r.cov is not None:
+        d["mean"] = pack_array(r.mean)
+        d["cov"] = pack_array(r.cov)
+    return pack(d)
+
+
+def decode_query_reply(payload: bytes) -> QueryReply:
+    d = unpack(payload, max_bytes=MAX_REPLY_BYTES)
+    _keys(d, ("id", "a", "b", "seq"), ("samples", "mean", "cov"))
+    samples = mean = cov = None
+    if "samples" in d:
+        samples = decode_samples(d["samples"], None, widths=(7,))
+    if "mean" in d or "cov" in d:
+        mean = unpack_array(d.get("mean"), "mean", 1, max_elems=7)
+        cov = unpack_array(d.get("cov"), "cov", 2, max_elems=36)
+        if mean.shape != (7,) or cov.shape != (6, 6):
+            raise BadMessage("mean/cov", "shapes (7,) and (6, 6)",
+                             f"{mean.shape} and {cov.shape}")
+    return QueryReply(request_id=_str(d, "id", max_chars=MAX_ID_CHARS), a=check_frame(d["a"]),
+                      b=check_frame(d["b"]), seq=_int(d, "seq"), samples=samples, mean=mean,
+                      cov=cov)
+
+
+def encode_info_reply(info: MapInfo) -> bytes:
+    return pack({"v": VERSION, "map": info.map, "n_samples": info.n_samples,
+                 "options": dict(info.options), "seq": info.seq, "digest": info.digest,
+                 "frames": list(info.frames),
+                 "components": {k: list(v) for k, v in info.components.items()},
+                 "rejected": info.rejected, "rejected_by_error": dict(info.rejected_by_error),
+                 "server_id": info.server_id, "recording": info.recording,
+                 "queue_length": info.queue_length})
+
+
+def decode_info_reply(payload: bytes) -> MapInfo:
+    d = unpack(payload, max_bytes=MAX_REPLY_BYTES)
+    _keys(d, ("map", "n_samples", "options", "seq", "digest", "frames", "components",
+              "rejected", "rejected_by_error", "server_id", "recording"), ("queue_length",))
+    if not isinstance(d["options"], dict) or not isinstance(d["components"], dict):
+        raise BadMessage("options/components", "maps", "other types")
+    if not isinstance(d["rejected_by_error"], dict):
+        raise BadMessage("rejected_by_error", "a map", type(d["rejected_by_error"]).__name__)
+    return MapInfo(
+        map=_str(d, "map", max_chars=64), n_samples=_int(d, "n_samples"),
+        options=dict(d["options"]), seq=_int(d, "seq"), digest=_str(d, "digest", max_chars=128),
+        frames=_str_list(d["frames"], "frames"),
+        components={str(k): _str_list(v, "components") for k, v in d["components"].items()},
+        rejected=_int(d, "rejected"),
+        rejected_by_error={str(k): int(v) for k, v in d["rejected_by_error"].items()},
+        server_id=_str(d, "server_id", max_chars=256),
+        recording=_str(d, "recording", max_chars=4096),
+        queue_length=int(d.get("queue_length", 0)),
+    )
+
+
+def encode_submap_reply(r: SubmapReply) -> bytes:
+    return pack({"v": VERSION, "id": r.request_id, "seq": r.seq,
+                 "submap": _pack_submap(r.submap)})
+
+
+def decode_submap_reply(payload: bytes) -> SubmapReply:
+    d = unpack(payload, max_bytes=MAX_REPLY_BYTES)
+    _keys(d, ("id", "seq", "submap"))
+    return SubmapReply(request_id=_str(d, "id", max_chars=MAX_ID_CHARS), seq=_int(d, "seq"),
+                       submap=decode_submap_data(d["submap"], None))
+
+
+def encode_error(err: McsmError, request_id: str = "") -> bytes:
+    """An error reply: ``McsmError.to_dict()`` plus ``v`` and the request id if known."""
+    d: dict[str, Any] = {"v": VERSION, **err.to_dict()}
+    if request_id:
+        d["id"] = request_id
+    return pack(d)
+
+
+def decode_error(payload: bytes) -> McsmError:
+    """Rebuild the typed error of an error reply (``McsmError.from_dict``).
+
+    Raises
+    ------
+    BadMessage
+        If the payload is not an mcsm error reply (e.g. Zenoh's own ``Timeout`` text).
+    """
+    d = unpack(payload, max_bytes=MAX_PAYLOAD_BYTES)
+    _keys(d, ("error", "message"), ("fields", "id"))
+    if not isinstance(d["error"], str) or not isinstance(d["message"], str):
+        raise BadMessage("error", "strings error and message", _short(d))
+    if "fields" in d and not isinstance(d["fields"], dict):
+        raise BadMessage("fields", "a map", type(d["fields"]).__name__)
+    return McsmError.from_dict(d)
+
+
+def encode_event(ev: Event) -> bytes:
+    d: dict[str, Any] = {"v": VERSION, "map": ev.map, "seq": ev.seq, "op": ev.op,
+                         "kind": ev.kind, "frames": list(ev.frames), "component": ev.component,
+                         "time_ns": ev.time_ns, "digest": ev.digest}
+    if ev.extra:
+        d["extra"] = dict(ev.extra)
+    return pack(d)
+
+
+def decode_event(payload: bytes) -> Event:
+    d = unpack(payload, max_bytes=MAX_PAYLOAD_BYTES)
+    _keys(d, ("map", "seq", "op", "kind", "frames", "component", "time_ns", "digest"),
+          ("extra",))
+    dig = d["digest"]
+    if dig is not None and not isinstance(dig, str):
+        raise BadMessage("digest", "a hex string or nil", _short(dig))
+    comp = d["component"]
+    if comp is not None and not isinstance(comp, str):
+        raise BadMessage("component", "a frame name or nil", _short(comp))
+    extra = d.get("extra", {})
+    if not isinstance(extra, dict):
+        raise BadMessage("extra", "a map", type(extra).__name__)
+    return Event(map=_str(d, "map", max_chars=64), seq=_int(d, "seq"),
+                 op=_str(d, "op", max_chars=32), kind=_str(d, "kind", max_chars=32),
+                 frames=_str_list(d["frames"], "frames"), component=comp,
+                 time_ns=_int(d, "time_ns"), digest=dig, extra=extra)
