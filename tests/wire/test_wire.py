@@ -1,0 +1,206 @@
+"""The wire codec: bit-exact round trips, the malformed-payload table, and the JSON Schemas."""
+
+from __future__ import annotations
+
+import base64
+import json
+from importlib import resources
+from typing import Any
+
+import msgpack
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from jsonschema import Draft202012Validator
+from mcsm import wire
+from mcsm.core.at import identity
+from mcsm.core.quat import qexp
+from mcsm.errors import (
+    BadMessage,
+    InvalidSamples,
+    LimitExceeded,
+    McsmError,
+    SampleCountMismatch,
+    UnknownFrame,
+    UnsupportedVersion,
+)
+from wire_cases import CASES, decode_for, good_samples
+
+SCHEMA_FILES = sorted(p.name for p in resources.files("mcsm.schemas").iterdir()
+                      if p.name.endswith(".json"))
+
+
+def random_samples(rng: np.random.Generator, n: int) -> np.ndarray:
+    x = np.empty((n, 7))
+    x[:, :3] = 1e3 * rng.standard_normal((n, 3))
+    x[:, 3:] = qexp(rng.standard_normal((n, 3)))
+    x[rng.random(n) < 0.5, 3:] *= -1.0  # both quaternion signs
+    return x
+
+
+@settings(deadline=None, max_examples=30)
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, 300))
+def test_update_round_trip_is_bit_exact(seed: int, n: int) -> None:
+    rng = np.random.default_rng(seed)
+    x = random_samples(rng, n)
+    req = wire.decode_update(wire.encode_update("id-1", "a:1", "b.2", x, sender="s"), n)
+    assert req.samples.tobytes() == x.tobytes()
+    assert (req.request_id, req.a, req.b, req.sender, req.point) == ("id-1", "a:1", "b.2", "s",
+                                                                     False)
+    assert req.samples.flags.writeable and req.samples.flags.c_contiguous
+
+
+@settings(deadline=None, max_examples=20)
+@given(seed=st.integers(0, 2**32 - 1))
+def test_point_submap_and_replies_round_trip(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(2, 50))
+    p = rng.standard_normal((n, 3))
+    req = wire.decode_update(wire.encode_update("p", "a", "lm", p), n)
+    assert req.point and req.samples.tobytes() == p.tobytes()
+    edges = np.stack([identity(n), random_samples(rng, n), random_samples(rng, n)])
+    sub = wire.SubmapData("r", ("r", "f1", "p2"), (False, False, True), edges)
+    imp = wire.decode_submap_request(wire.encode_submap_import("i", sub, sender="x"), n)
+    assert isinstance(imp, wire.SubmapImportRequest)
+    assert imp.submap.edges.tobytes() == edges.tobytes()
+    assert (imp.submap.frames, imp.submap.is_point) == (sub.frames, sub.is_point)
+    rep = wire.decode_submap_reply(wire.encode_submap_reply(wire.SubmapReply("i", 4, sub)))
+    assert rep.submap.edges.tobytes() == edges.tobytes() and rep.seq == 4
+    mean, cov = rng.standard_normal(7), rng.standard_normal((6, 6))
+    q = wire.decode_query_reply(wire.encode_query_reply(
+        wire.QueryReply("q", "a", "b", 9, samples=edges[1], mean=mean, cov=cov)))
+    assert q.samples is not None and q.samples.tobytes() == edges[1].tobytes()
+    assert q.mean is not None and q.mean.tobytes() == mean.tobytes()
+    assert q.cov is not None and q.cov.tobytes() == cov.tobytes()
+
+
+def test_ack_info_event_error_round_trip() -> None:
+    ack = wire.Ack("r-1", 12, "update", "loop_closure", "w", ("a",), (), True)
+    assert wire.decode_ack(wire.encode_ack(ack)) == ack
+    info = wire.MapInfo("default", 100, {"n_samples": 100, "method": "joint"}, 3, "ab" * 32,
+                        ("w", "r"), {"w": ("w", "r")}, 2, {"BadMessage": 2}, "zid", "x.mcap", 1)
+    assert wire.decode_info_reply(wire.encode_info_reply(info)) == info
+    ev = wire.Event("default", 5, "remove", "remove", ("r",), None, 123, None)
+    assert wire.decode_event(wire.encode_event(ev)) == ev
+    err = wire.decode_error(wire.encode_error(UnknownFrame("ghost"), "r-2"))
+    assert isinstance(err, UnknownFrame) and "ghost" in str(err)
+    assert err.fields["name"] == "ghost"
+
+
+@pytest.mark.parametrize("case_id,op,build,error,map_level", CASES, ids=[c[0] for c in CASES])
+def test_malformed_payload_table_decoder(case_id: str, op: str, build: Any, error: str,
+                                         map_level: bool) -> None:
+    n = 16
+    payload = build(n)
+    if map_level:
+        decode_for(op, payload, n)  # passes the codec; the map refuses it (service tests)
+        return
+    with pytest.raises(McsmError) as info:
+        decode_for(op, payload, n)
+    assert type(info.value).__name__ == error, info.value
+    # the error survives the trip through an error reply with its type and message
+    back = wire.decode_error(wire.encode_error(info.value, "x"))
+    assert type(back) is type(info.value) and back.message == info.value.message
+
+
+def test_payload_length_is_checked_before_unpacking() -> None:
+    big = b"\x00" * (wire.MAX_PAYLOAD_BYTES + 1)
+    with pytest.raises(LimitExceeded):
+        wire.decode_update(big, 10)
+    # a bin header claiming 4 GiB in a short payload is refused, not allocated
+    with pytest.raises(BadMessage):
+        wire.unpack(b"\xc6\xff\xff\xff\xff" + b"\x00" * 16)
+    # nesting bombs are refused cleanly
+    with pytest.raises(BadMessage):
+        wire.unpack(b"\x91" * 200_000)
+
+
+def test_specific_error_fields() -> None:
+    x = good_samples(10)
+    with pytest.raises(SampleCountMismatch) as e1:
+        wire.decode_update(wire.encode_update("i", "a", "b", x), 11)
+    assert (e1.value.fields["expected"], e1.value.fields["got"]) == (11, 10)
+    with pytest.raises(UnsupportedVersion) as e2:
+        wire.decode_info(msgpack.packb({"v": 99}))
+    assert e2.value.fields["supported"] == 1
+    x[4, 3:7] = [0.0, 0.0, 0.0, 0.0]
+    with pytest.raises(InvalidSamples, match="sample"):
+        wire.decode_update(wire.encode_update("i", "a", "b", x), 10)
+
+
+def test_keys_and_names() -> None:
+    k = wire.map_keys("lab.1", "fleet/site-a")
+    assert (k.update, k.events, k.alive("z1")) == ("fleet/site-a/lab.1/update",
+                                                  "fleet/site-a/lab.1/events",
+                                                  "fleet/site-a/lab.1/alive/z1")
+    for bad_map in ("", "a/b", "a*", "x" * 65):
+        with pytest.raises(BadMessage):
+            wire.map_keys(bad_map)
+    with pytest.raises(BadMessage):
+        wire.map_keys("m", "bad/**")
+
+
+# ----------------------------------------------------------------------------- JSON Schemas
+def _jsonable(obj: Any) -> Any:
+    """msgpack values as a JSON view: bin fields as base64 strings (the schemas' convention)."""
+    if isinstance(obj, bytes):
+        return base64.b64encode(obj).decode()
+    if isinstance(obj, dict):
+        return {k: _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    return obj
+
+
+def _schema(name: str) -> dict[str, Any]:
+    return json.loads(resources.files("mcsm.schemas").joinpath(name).read_text())
+
+
+@pytest.mark.parametrize("name", SCHEMA_FILES)
+def test_schemas_are_valid_and_versioned(name: str) -> None:
+    s = _schema(name)
+    Draft202012Validator.check_schema(s)
+    assert s["properties"]["v"] == {"const": 1, "description": s["properties"]["v"]["description"]}
+    assert "v" in s["required"] and s["additionalProperties"] is False
+
+
+def _messages(n: int) -> dict[str, bytes]:
+    x = good_samples(n)
+    sub = wire.SubmapData("w", ("w", "r"), (False, False), np.stack([identity(n), x]))
+    return {
+        "update_request.json": wire.encode_update("i", "w", "r", x, sender="me"),
+        "point_update_request.json": wire.encode_update("i", "w", "p", good_samples(n, 3)),
+        "remove_request.json": wire.encode_remove("i", "r"),
+        "query_request.json": wire.encode_query("i", "w", "r", "marginal"),
+        "query_reply.json": wire.encode_query_reply(wire.QueryReply("i", "w", "r", 1,
+                                                                    samples=x)),
+        "info_request.json": wire.encode_info("i"),
+        "info_reply.json": wire.encode_info_reply(wire.MapInfo(
+            "m", n, {"n_samples": n}, 1, "d", ("w",), {"w": ("w",)}, 0, {}, "z", "f")),
+        "submap_export_request.json": wire.encode_submap_export("i", "w"),
+        "submap_import_request.json": wire.encode_submap_import("i", sub),
+        "submap_reply.json": wire.encode_submap_reply(wire.SubmapReply("i", 1, sub)),
+        "ack.json": wire.encode_ack(wire.Ack("i", 1, "update", "join", "w", ("r",))),
+        "error.json": wire.encode_error(UnknownFrame("r"), "i"),
+        "event.json": wire.encode_event(wire.Event("m", 1, "update", "join", ("w", "r"), "w",
+                                                   5, "d")),
+    }
+
+
+def test_every_message_validates_against_its_schema() -> None:
+    msgs = _messages(5)
+    wire_schemas = {n for n in SCHEMA_FILES if not n.startswith("record_")}
+    assert set(msgs) == wire_schemas  # one schema per message kind, each exercised
+    for name, payload in msgs.items():
+        Draft202012Validator(_schema(name)).validate(_jsonable(msgpack.unpackb(payload)))
+
+
+def test_schemas_reject_what_the_codec_rejects() -> None:
+    v = Draft202012Validator(_schema("update_request.json"))
+    good = _jsonable(msgpack.unpackb(wire.encode_update("i", "w", "r", good_samples(3))))
+    assert v.is_valid(good)
+    assert not v.is_valid({**good, "v": 2})
+    assert not v.is_valid({**good, "b": "a/b"})
+    assert not v.is_valid({**good, "extra": 1})
+    assert not v.is_valid({**good, "samples": {**good["samples"], "shape": [3, 6]}})
