@@ -42,7 +42,7 @@ from mcsm.core.at import (
     merge_correlated,
     to_space,
 )
-from mcsm.core.quat import mean_rotation, qconj, qexp, qlog, qmul, qrot
+from mcsm.core.quat import qconj, qrot
 from mcsm.errors import (
     FrameExists,
     InvalidOperation,
@@ -499,35 +499,40 @@ class StochasticMap:
         if not np.isfinite(w).all():
             raise NumericalError("the analysis produced non-finite weights")
 
-        if self.space == "quaternion":
-            state = c.edges
-            q_ref = None
-        else:
-            q_ref = mean_rotation(c.edges[..., 3:])  # (M, 4)
-            rot = qlog(qmul(qconj(q_ref)[:, None, :], c.edges[..., 3:]))
-            state = np.concatenate((c.edges[..., :3], rot), axis=-1)  # (M, N, 6)
-        # cross-covariance of every edge component with the predicted observation: (M, p, d)
-        c_xy_t = np.matmul(yc.T[None], state) / (n - 1)
+        # One pass over the edges gives every edge's cross-covariance with the predicted
+        # observation and its mean: [yc, 1] is (N, p+1); result (M, p+1, 7).
+        lhs = np.concatenate((yc / (n - 1), np.full((n, 1), 1.0 / n)), axis=1)
+        moments = np.matmul(lhs.T[None], c.edges)
+        c_xy_t = moments[:, :-1, :]
+        mean = moments[:, -1, :]  # (M, 7)
+        if self.space == "tangent":
+            # The ⊞ chart δ = 2 vec(q̄* q) around each edge's mean rotation q̄ (edges are stored
+            # on q̄'s hemisphere). A change Δ of δ is the quaternion change ½ q̄ ⊗ (0, Δ), so
+            # in this chart the update is the quaternion one with every cross-covariance
+            # projected onto the tangent plane at q̄: no log/exp over the M·N samples.
+            q_bar = mean[:, 3:] / np.linalg.norm(mean[:, 3:], axis=1, keepdims=True)
+            radial = np.einsum("mpk,mk->mp", c_xy_t[..., 3:], q_bar)
+            c_xy_t[..., 3:] -= radial[..., None] * q_bar[:, None, :]
         if self.shrink is not None:
-            c_xy_t = an.shrink_correlations(c_xy_t, state, yc, self.shrink)
-        delta = np.matmul(w[None], c_xy_t)  # (M, N, d)
-        delta += state
-        new_state = delta
+            c_xy_t = an.shrink_correlations(c_xy_t, c.edges, yc, self.shrink)
+        # Finite factors with a bounded product give finite increments: this replaces a full
+        # isfinite pass over the (M, N, 7) result.
+        bound = float(np.abs(c_xy_t).max(initial=0.0)) * float(np.abs(w).max()) * w.shape[1]
+        if not (np.isfinite(c_xy_t).all() and bound < 1e100):
+            raise NumericalError("the update's gain is not finite")
+        new_edges = np.matmul(w[None], c_xy_t)  # (M, N, 7): the increments
+        new_edges += c.edges
         if self.inflation != 1.0:
-            mean = new_state.mean(axis=1, keepdims=True)
-            new_state = mean + self.inflation * (new_state - mean)
-        if self.space == "quaternion":
-            q = new_state[..., 3:]
-            norm = np.sqrt(np.einsum("mnk,mnk->mn", q, q))
-            if not np.all(norm > 0.1) or not np.isfinite(norm).all():
-                raise NumericalError("the update pushed quaternions towards zero")
-            q /= norm[..., None]
-            edges = new_state
-        else:
-            assert q_ref is not None
-            q = qmul(q_ref[:, None, :], qexp(new_state[..., 3:]))
-            edges = np.concatenate((new_state[..., :3], q), axis=-1)
-        self._check_finite(edges, "the loop closure")
+            new_mean = mean + w.mean(axis=0) @ c_xy_t  # (M, 7)
+            new_edges -= new_mean[:, None, :]
+            new_edges *= self.inflation
+            new_edges += new_mean[:, None, :]
+        q = new_edges[..., 3:]
+        norm = np.sqrt(np.einsum("mnk,mnk->mn", q, q))
+        if not (np.isfinite(norm).all() and np.all(norm > 0.1)):
+            raise NumericalError("the update pushed quaternions to zero or non-finite values")
+        q /= norm[..., None]
+        edges = new_edges
         # The root edge and point orientations have zero anomalies, so the update leaves them
         # unchanged up to rounding; pin them exactly so they stay definitions, not estimates.
         edges[0] = identity(n)
