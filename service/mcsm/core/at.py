@@ -66,12 +66,13 @@ def invert(x_a_b: Array) -> Array:
     return np.concatenate((t, q), axis=-1)
 
 
-def canonicalize(x: Array) -> Array:
-    """Put every AT's quaternion samples on the hemisphere of its own mean; renormalise.
+def canonicalize(x: Array, normalize: bool = True) -> Array:
+    """Put every AT's quaternion samples on the hemisphere of its own mean (sign flips only,
+    exact), after renormalising them unless ``normalize`` is False.
 
     ``x``: ``(..., N, 7)``. Needed before any linear step in quaternion space (PAPER §5).
     """
-    q = qnormalize(x[..., 3:])
+    q = qnormalize(x[..., 3:]) if normalize else x[..., 3:]
     ref = mean_rotation(q)[..., None, :]
     out = np.empty_like(x)
     out[..., :3] = x[..., :3]

@@ -326,9 +326,13 @@ class StochasticMap:
             raise InvalidSamples("non-unit quaternions in submap edges")
         if np.max(np.abs(edges[0] - identity(self.n_samples))) > 1e-12:
             raise InvalidSamples("the root edge of a submap must be the identity")
-        edges[..., 3:] /= np.sqrt(norm2)[..., None]
+        # An exported submap is already unit and canonical: keep its bits (digests compare).
+        renormalize = bool(np.max(np.abs(norm2 - 1.0)) > 1e-12)
+        if renormalize:
+            edges[..., 3:] /= np.sqrt(norm2)[..., None]
         edges[0] = identity(self.n_samples)
-        comp = _Component(frames, np.array(submap.is_point, dtype=bool), canonicalize(edges))
+        comp = _Component(frames, np.array(submap.is_point, dtype=bool),
+                          canonicalize(edges, normalize=renormalize))
         self._pin_points(comp.edges, comp.is_point)
         self._install(comp, new_frames=frames)
         return UpdateResult("import", frames[0], tuple(frames))
