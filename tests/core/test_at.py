@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
-from scipy.spatial.transform import Rotation
-
 from mcsm import compound, identity, invert, mean_and_cov, merge, merge_correlated
 from mcsm.core.quat import qexp, qlog, qmul, qrot
+from scipy.spatial.transform import Rotation
+
 from tests.helpers import assert_at_close, gaussian_at, random_at
 
 seeds = st.integers(0, 2**32 - 1)

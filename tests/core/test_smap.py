@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from mcsm import StochasticMap, compound, invert
 from mcsm.core.quat import qexp
 from mcsm.errors import (
@@ -16,6 +15,7 @@ from mcsm.errors import (
     SampleCountMismatch,
     UnknownFrame,
 )
+
 from tests.helpers import assert_at_close, random_at
 
 N = 64
