@@ -13,7 +13,6 @@ import io
 import numpy as np
 import pytest
 from mcsm_client.datasets import (
-    Dataset,
     DatasetError,
     gtsam_data_dir,
     parse_dataset,
@@ -156,81 +155,6 @@ def test_missing_file_and_gtsam_names(tmp_path) -> None:  # type: ignore[no-unty
 
 
 
-def _point_error(z: np.ndarray):  # type: ignore[no-untyped-def]
-    """GTSAM CustomFactor error of a Cartesian point sighting ``z`` (2,) from a Pose2."""
-
-    def err(this, values, jac):  # type: ignore[no-untyped-def]
-        # landmark in the pose's frame: q = R(θ)ᵀ (l − t); Jacobians for Pose2's right
-        # retraction (t + R δt, θ + δθ) and for the point.
-        p = values.atPose2(this.keys()[0])
-        lm = values.atPoint2(this.keys()[1])
-        co, si = np.cos(p.theta()), np.sin(p.theta())
-        rot = np.array([[co, -si], [si, co]])
-        q = rot.T @ (lm - np.array([p.x(), p.y()]))
-        if jac is not None:
-            jac[0] = np.array([[-1.0, 0.0, q[1]], [0.0, -1.0, -q[0]]])
-            jac[1] = rot.T
-        return q - z
-
-    return err
-
-
-def _chi2_at_optimum(ds: Dataset) -> tuple[float, int]:
-    """chi2 of our constraints at GTSAM's LM optimum, and its degrees of freedom."""
-    gtsam = pytest.importorskip("gtsam")
-
-    def xk(i: int) -> int:
-        return int(gtsam.symbol("x", i))
-
-    def lk(j: int) -> int:
-        return int(gtsam.symbol("l", j))
-
-    graph = gtsam.NonlinearFactorGraph()
-    est: dict[int, object] = {}
-    m = 0
-    for c in ds.constraints:
-        noise = gtsam.noiseModel.Gaussian.Covariance(c.cov)
-        if c.is_point:
-            graph.add(gtsam.CustomFactor(noise, [xk(c.source), lk(c.target)],
-                                         _point_error(c.mean.copy())))
-            if lk(c.target) not in est:
-                est[lk(c.target)] = est[xk(c.source)].transformFrom(c.mean)  # type: ignore
-            m += 2
-            continue
-        if ds.dim == 2:
-            z = gtsam.Pose2(*c.mean)
-            graph.add(gtsam.BetweenFactorPose2(xk(c.source), xk(c.target), z, noise))
-            m += 3
-        else:
-            z = gtsam.Pose3(gtsam.Rot3.Quaternion(*c.mean[3:]), c.mean[:3])
-            perm = [3, 4, 5, 0, 1, 2]  # ours [t, r] -> gtsam's [r, t]
-            cov = c.cov[np.ix_(perm, perm)]
-            graph.add(gtsam.BetweenFactorPose3(xk(c.source), xk(c.target), z,
-                                               gtsam.noiseModel.Gaussian.Covariance(cov)))
-            m += 6
-        a, b = xk(c.source), xk(c.target)
-        if a not in est and b not in est:
-            est[a] = gtsam.Pose2() if ds.dim == 2 else gtsam.Pose3()
-        if b not in est:
-            est[b] = est[a].compose(z)  # type: ignore[attr-defined]
-        elif a not in est:
-            est[a] = est[b].compose(z.inverse())  # type: ignore[attr-defined]
-    values = gtsam.Values()
-    n_par = 0
-    for key, val in est.items():
-        values.insert(key, val)
-        n_par += val.dim() if hasattr(val, "dim") else 2  # Point2 is a numpy array
-    pd = 3 if ds.dim == 2 else 6
-    anchor = xk(ds.constraints[0].source)
-    prior = (gtsam.PriorFactorPose2 if ds.dim == 2 else gtsam.PriorFactorPose3)(
-        anchor, est[anchor], gtsam.noiseModel.Isotropic.Sigma(pd, 1e-6))
-    graph.add(prior)
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(100)
-    result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
-    return 2.0 * graph.error(result), m - (n_par - pd)
-
-
 def _gtsam_file(name: str) -> str:
     pytest.importorskip("gtsam")
     d = gtsam_data_dir()
@@ -249,14 +173,15 @@ def _gtsam_file(name: str) -> str:
         ("pose3example-grid.txt", 0.6, 1.3),        # measured 0.81
     ],
 )
-def test_chi2_per_dof_near_one_at_gtsam_optimum(name: str, low: float, high: float) -> None:
+def test_chi2_per_dof_near_one_at_gtsam_optimum(name: str, low: float, high: float,
+                                                 gtsam_chi2) -> None:  # type: ignore[no-untyped-def]
     ds = read_dataset(_gtsam_file(name))
-    chi2, dof = _chi2_at_optimum(ds)
+    chi2, dof = gtsam_chi2(ds)
     assert dof > 0
     assert low < chi2 / dof < high, (name, chi2, dof)
 
 
-def test_wrong_convention_is_far_from_one() -> None:
+def test_wrong_convention_is_far_from_one(gtsam_chi2) -> None:  # type: ignore[no-untyped-def]
     """Reading the iSAM file's sqrt-information as information gives a chi2/dof far below 1.
 
     Also checks that a prefix is read with the whole file's convention (auto-detected).
@@ -264,7 +189,7 @@ def test_wrong_convention_is_far_from_one() -> None:
     ok = read_dataset(_gtsam_file("cityTrees_reduced_1k.g2o"), max_lines=10)
     assert ok.noise == "sqrt_information"
     ds = read_dataset(_gtsam_file("cityTrees_reduced_1k.g2o"), noise="information")
-    chi2, dof = _chi2_at_optimum(ds)
+    chi2, dof = gtsam_chi2(ds)
     assert dof > 0
     assert chi2 / dof < 0.2
 
@@ -291,7 +216,7 @@ def test_victoria_park_text_prefix_matches_the_reduced_g2o() -> None:
 
 
 @pytest.mark.parametrize("name", ["w100.graph", "pose3example.txt"])
-def test_same_chi2_as_gtsams_own_reader(name: str) -> None:
+def test_same_chi2_as_gtsams_own_reader(name: str, gtsam_chi2) -> None:  # type: ignore[no-untyped-def]
     """Where gtsam's own reader is right (unit TORO noise, g2o 3D), our chi2 equals its chi2.
 
     Both files' stated noise does not describe their data (w100: unit sigmas on ~0.05 m noise,
@@ -301,7 +226,7 @@ def test_same_chi2_as_gtsams_own_reader(name: str) -> None:
     gtsam = pytest.importorskip("gtsam")
     path = str(resolve_dataset_path(_gtsam_file(name)))
     ds = read_dataset(path)
-    ours, _ = _chi2_at_optimum(ds)
+    ours, _ = gtsam_chi2(ds)
     is3d = ds.dim == 3
     graph, initial = gtsam.readG2o(path, True) if is3d else gtsam.load2D(path)
     pd = 6 if is3d else 3
