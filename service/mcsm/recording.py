@@ -353,7 +353,8 @@ class ReplayReport:
 
 def replay(path: str | os.PathLike[str], *, sink: Recorder | None = None,
            progress: Callable[[int, int], None] | None = None,
-           lru_size: int = DEFAULT_LRU, server_id: str = "") -> ReplayReport:
+           lru_size: int = DEFAULT_LRU, server_id: str = "",
+           stop_after: int | None = None) -> ReplayReport:
     """Rebuild every map of a recording and check its digests at every checkpoint.
 
     Parameters
@@ -362,6 +363,7 @@ def replay(path: str | os.PathLike[str], *, sink: Recorder | None = None,
     sink : if given, every config, input and checkpoint is written again into this recorder
         (used by ``mcsm serve --restore``: the new file replays on its own)
     progress : called with (bytes read, file size) at most ten times a second
+    stop_after : stop after this many inputs (all maps together), e.g. to inspect a past state
 
     Returns
     -------
@@ -377,6 +379,8 @@ def replay(path: str | os.PathLike[str], *, sink: Recorder | None = None,
     rep = ReplayReport(path=str(path))
     reader = RecordingReader(path, progress)
     for item in reader:
+        if stop_after is not None and rep.n_inputs >= stop_after:
+            break
         d = item.data
         if rep.first_time_ns is None:
             rep.first_time_ns = item.log_time_ns

@@ -215,8 +215,7 @@ def chain_ops(rng: np.random.Generator, n: int, count: int) -> list[Any]:
     for i in range(count):
         if i % 6 == 5:
             ops.append(("update", "p0", f"p{i}", noisy_at(rng, n, [float(i), 0, 0])))
-        else:
-            ops.append(("update", f"p{i}", f"p{i + 1}", noisy_at(rng, n, [1, 0, 0])))
+        ops.append(("update", f"p{i}", f"p{i + 1}", noisy_at(rng, n, [1, 0, 0])))
     return ops
 
 
