@@ -267,7 +267,18 @@ def _step_factors(
         )
     else:
         odo = step.odometry
-        pose = compose_2d(estimate[odo.i], odo.delta)
+        if odo.j == step.pose:
+            pose = compose_2d(estimate[odo.i], odo.delta)
+        else:  # edge written from the new pose to a known one (TORO files): invert it
+            c, s = np.cos(odo.delta[2]), np.sin(odo.delta[2])
+            back = np.array(
+                [
+                    -c * odo.delta[0] - s * odo.delta[1],
+                    s * odo.delta[0] - c * odo.delta[1],
+                    -odo.delta[2],
+                ]
+            )
+            pose = compose_2d(estimate[odo.j], back)
         graph.add(
             gtsam.BetweenFactorPose2(
                 X(odo.i), X(odo.j), gtsam.Pose2(*odo.delta), _odometry_noise(odo)
@@ -531,6 +542,7 @@ def problem_from_dataset(dataset: Any, max_poses: int | None = None) -> PlanarPr
     steps: list[Step2D] = []
     first = dataset.constraints[0].source
     current = Step2D(first, None)
+    seen = {first}
     pending_s: list[Sighting2D] = []
     pending_l: list[Odometry2D] = []
     n_poses = 1
@@ -542,8 +554,10 @@ def problem_from_dataset(dataset: Any, max_poses: int | None = None) -> PlanarPr
                 break
             steps.append(Step2D(current.pose, current.odometry, tuple(pending_s), tuple(pending_l)))
             pending_s, pending_l = [], []
+            new_pose = int(c.target) if int(c.source) in seen else int(c.source)
+            seen.update((int(c.source), int(c.target)))
             current = Step2D(
-                int(c.target), Odometry2D(int(c.source), int(c.target), mean, cov, additive=False)
+                new_pose, Odometry2D(int(c.source), int(c.target), mean, cov, additive=False)
             )
             n_poses += 1
         elif c.kind == "landmark":
