@@ -26,13 +26,14 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "service"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository root
 
-from daemon_util import noisy_at, start_daemon  # noqa: E402
 from mcsm import StochasticMap  # noqa: E402
 from mcsm.errors import McsmError  # noqa: E402
 from mcsm.recording import RecordingReader  # noqa: E402
 from mcsm_client.client import MapClient  # noqa: E402
+
+from tests.service.daemon_util import noisy_at, start_daemon  # noqa: E402
 
 OUT = Path(__file__).resolve().parents[2] / "recordings"
 

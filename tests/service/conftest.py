@@ -6,7 +6,8 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from daemon_util import Daemon
+
+from tests.service.daemon_util import Daemon
 
 
 @pytest.fixture

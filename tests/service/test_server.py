@@ -16,13 +16,14 @@ from typing import Any
 import numpy as np
 import pytest
 import zenoh
-from daemon_util import Daemon, noisy_at, start_daemon
 from mcsm import StochasticMap, wire
 from mcsm.cli import main as mcsm_main
 from mcsm.errors import FrameExists, McsmError, Timeout, UnknownFrame
 from mcsm.recording import replay
 from mcsm_client.client import MapClient
-from wire_cases import CASES
+
+from tests.service.daemon_util import Daemon, noisy_at, start_daemon
+from tests.wire_cases import CASES
 
 N = 32
 

@@ -25,7 +25,8 @@ from mcsm.errors import (
     UnknownFrame,
     UnsupportedVersion,
 )
-from wire_cases import CASES, decode_for, good_samples
+
+from tests.wire_cases import CASES, decode_for, good_samples
 
 SCHEMA_FILES = sorted(p.name for p in resources.files("mcsm.schemas").iterdir()
                       if p.name.endswith(".json"))
