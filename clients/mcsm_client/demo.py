@@ -1,0 +1,294 @@
+"""``make run``: a server, the paper's simulation and the multi-robot demo, end to end.
+
+What it does, all on loopback (no network, no second machine):
+
+1. starts ``mcsm serve`` as a subprocess on a free port of 127.0.0.1, recording to
+   ``recordings/run-<UTC time>/server.mcap``, and waits for its ``listening on`` line;
+2. runs the paper's §6 simulation client (PAPER §4) against it for one revolution (340
+   iterations: the big loop closes), scoring landmark RMS error and NEES per dof against ground
+   truth; writes ``sim.csv`` and ``sim.png``;
+3. starts a second server for robot B and runs the multi-robot demo (two maps, rendezvous
+   join through ``export_submap``/``import_submap``, loop closures across robots);
+4. prints an accuracy summary and where the files are, and stops both servers with SIGINT
+   (their recordings are closed cleanly; ``mcsm replay`` checks them).
+
+Run ``python -m mcsm_client.demo --help`` for the knobs (N, iterations, seed, output folder).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import queue
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import TracebackType
+from typing import IO, Any
+
+import numpy as np
+
+__all__ = ["DemoConfig", "ServerProcess", "free_port", "main", "run_demo"]
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that was free a moment ago (the OS picks it)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class ServerProcess:
+    """``mcsm serve`` as a child process on a free loopback port; a context manager.
+
+    Parameters
+    ----------
+    record : path
+        The MCAP recording to write.
+    n_samples : int
+        N of the served maps.
+    maps : sequence of str
+        Map names to serve.
+    log_path : path, optional
+        Where the server's stderr (its log) goes; default next to ``record``.
+    extra_args : sequence of str
+        More ``mcsm serve`` flags (``--method paper``, ...).
+    ready_timeout_s : float
+        How long to wait for ``listening on``.
+
+    Attributes
+    ----------
+    endpoint : str
+        ``tcp/127.0.0.1:<port>``, for ``MapClient(connect=...)``.
+    """
+
+    def __init__(self, record: str | os.PathLike[str], *, n_samples: int,
+                 maps: tuple[str, ...] = ("default",), log_path: str | os.PathLike[str] | None
+                 = None, extra_args: tuple[str, ...] = (), ready_timeout_s: float = 60.0
+                 ) -> None:
+        self.record = Path(record)
+        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        self.log_path = Path(log_path) if log_path else self.record.with_suffix(".log")
+        self.cmd = [sys.executable, "-m", "mcsm.cli", "serve", "--listen", self.endpoint,
+                    "--samples", str(int(n_samples)), "--record", str(self.record),
+                    *[a for m in maps for a in ("--map", m)], *extra_args]
+        self.ready_timeout_s = ready_timeout_s
+        self.proc: subprocess.Popen[str] | None = None
+        self._log: IO[str] | None = None
+        self.returncode: int | None = None
+
+    def start(self) -> ServerProcess:
+        """Start the server and wait for its ``listening on`` line.
+
+        Raises
+        ------
+        RuntimeError
+            If it exits or stays silent past ``ready_timeout_s`` (the log tail is included).
+        """
+        self.record.parent.mkdir(parents=True, exist_ok=True)
+        self._log = open(self.log_path, "w", encoding="utf-8")  # noqa: SIM115 - closed in stop
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        self.proc = subprocess.Popen(self.cmd, stdout=subprocess.PIPE, stderr=self._log,
+                                     text=True, env=env)
+        lines: queue.Queue[str | None] = queue.Queue()
+
+        def pump(out: IO[str]) -> None:
+            for line in out:
+                lines.put(line)
+            lines.put(None)
+
+        assert self.proc.stdout is not None  # Popen with PIPE always sets it
+        threading.Thread(target=pump, args=(self.proc.stdout,), daemon=True).start()
+        deadline = time.monotonic() + self.ready_timeout_s
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                self.stop()
+                raise RuntimeError(f"mcsm serve did not get ready in {self.ready_timeout_s} s"
+                                   f"\n{self.log_tail()}")
+            try:
+                line = lines.get(timeout=min(left, 0.5))
+            except queue.Empty:
+                continue
+            if line is None:
+                self.stop()
+                raise RuntimeError(f"mcsm serve exited early (code {self.returncode})\n"
+                                   f"{self.log_tail()}")
+            if line.startswith("listening on"):
+                return self
+
+    def stop(self, timeout_s: float = 20.0) -> int | None:
+        """SIGINT (clean shutdown: the recording is closed), then SIGKILL after ``timeout_s``."""
+        if self.proc is not None and self.returncode is None:
+            if self.proc.poll() is None:
+                self.proc.send_signal(signal.SIGINT)
+                try:
+                    self.proc.wait(timeout=timeout_s)
+                except subprocess.TimeoutExpired:
+                    self.proc.kill()
+                    self.proc.wait(timeout=timeout_s)
+            self.returncode = self.proc.returncode
+            if self.proc.stdout is not None:
+                self.proc.stdout.close()
+        if self._log is not None:
+            self._log.close()
+            self._log = None
+        return self.returncode
+
+    def log_tail(self, n_lines: int = 20) -> str:
+        """The last lines of the server's log."""
+        try:
+            return "\n".join(self.log_path.read_text(encoding="utf-8").splitlines()[-n_lines:])
+        except OSError:
+            return ""
+
+    def __enter__(self) -> ServerProcess:
+        return self.start()
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.stop()
+
+
+@dataclass(frozen=True)
+class DemoConfig:
+    """Knobs of ``make run`` (defaults: one revolution at N = 400, a few minutes here)."""
+
+    n_samples: int = 400
+    n_iterations: int = 340
+    score_every: int = 10
+    sigma_theta_deg: float = 0.0
+    seed: int = 2012
+    out_dir: Path | None = None
+    multirobot: bool = True
+    multirobot_samples: int = 200
+
+
+@dataclass
+class DemoReport:
+    """Files written and figures measured."""
+
+    out_dir: Path
+    files: list[Path] = field(default_factory=list)
+    figures: dict[str, Any] = field(default_factory=dict)
+
+
+def run_demo(config: DemoConfig, *, log: Any = print) -> DemoReport:
+    """Run the whole demo (see the module docstring). Returns what it wrote and measured."""
+    from mcsm_client.client import MapClient
+    from mcsm_client.multirobot import MultiRobotConfig, run_multirobot
+    from mcsm_client.sim import SimConfig, plot_results, run_sim
+
+    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+    out = config.out_dir or Path("recordings") / f"run-{stamp}"
+    out.mkdir(parents=True, exist_ok=True)
+    report = DemoReport(out_dir=out)
+    rng = np.random.default_rng(config.seed)
+    sim_rng, mr_rng = rng.spawn(2)
+
+    log(f"[1/3] starting mcsm serve (N={config.n_samples}) ...")
+    with ServerProcess(out / "server.mcap", n_samples=config.n_samples) as server:
+        log(f"      listening on {server.endpoint}, recording {server.record}")
+        with MapClient(connect=server.endpoint, timeout_s=30.0) as client:
+            client.wait_for_server(timeout_s=30.0)
+            log(f"[2/3] paper §6 simulation: {config.n_iterations} iterations, "
+                f"sigma_theta={config.sigma_theta_deg} deg")
+
+            def show(row: Any) -> None:
+                if row.iteration % 50 == 0 or row.iteration == config.n_iterations:
+                    log(f"      iteration {row.iteration:4d}: {row.n_landmarks:3d} landmarks, "
+                        f"RMS {row.rms_m:.3f} m, NEES/dof {row.nees_per_dof:.2f} "
+                        f"({row.elapsed_s:.0f} s)")
+
+            sim_cfg = SimConfig(n_iterations=config.n_iterations,
+                                sigma_theta_deg=config.sigma_theta_deg,
+                                score_every=config.score_every)
+            sim = run_sim(sim_cfg, client, rng=sim_rng, progress=show)
+            info = client.info()
+        report.files.append(sim.write_csv(out / "sim.csv"))
+        try:
+            report.files.append(plot_results({f"N={sim.n_samples}": sim}, out / "sim.png",
+                                             title="paper §6 scenario over mcsm serve"))
+        except ImportError as exc:
+            log(f"      (no plot: {exc})")
+        report.figures["sim"] = sim.as_dict()
+        report.figures["server"] = {"seq": info.seq, "digest": info.digest,
+                                    "frames": info.n_frames}
+        log(f"      {sim.summary()}")
+
+        if config.multirobot:
+            log(f"[3/3] multi-robot demo: robot B on its own server (N="
+                f"{config.multirobot_samples})")
+            mr_maps = ServerProcess(out / "robot-a.mcap", n_samples=config.multirobot_samples)
+            mr_b = ServerProcess(out / "robot-b.mcap", n_samples=config.multirobot_samples)
+            with mr_maps as srv_a, mr_b as srv_b, \
+                    MapClient(connect=srv_a.endpoint, timeout_s=30.0) as ca, \
+                    MapClient(connect=srv_b.endpoint, timeout_s=30.0) as cb:
+                ca.wait_for_server(timeout_s=30.0)
+                cb.wait_for_server(timeout_s=30.0)
+                mr = run_multirobot(MultiRobotConfig(), ca, cb, rng=mr_rng,
+                                    log=lambda s: log(f"      {s}"))
+            for line in mr.summary().splitlines():
+                log(f"      {line}")
+            report.figures["multirobot"] = {
+                "scores": [vars(s) for s in mr.scores], "join": mr.join_kind,
+                "cross_loop_closures": mr.cross_loop_closures}
+            report.files += [srv_a.record, srv_b.record]
+    report.files.insert(0, server.record)
+    (out / "summary.json").write_text(json.dumps(report.figures, indent=2, default=str))
+    report.files.append(out / "summary.json")
+    log("")
+    log("accuracy summary")
+    f = sim.final
+    log(f"  paper §6 sim, N={sim.n_samples}, after {f.iteration} iterations: landmark RMS "
+        f"{f.rms_m:.3f} m, NEES/dof {f.nees_per_dof:.2f} ({f.n_landmarks} landmarks)")
+    if config.multirobot:
+        for s in mr.scores[-2:]:
+            log(f"  multi-robot {s.stage}: RMS {s.rms_m:.3f} m, NEES/dof {s.nees_per_dof:.2f}")
+    log(f"server stopped (exit code {server.returncode}); files in {out}/:")
+    for p in report.files:
+        log(f"  {p}")
+    log(f"replay a recording: .venv/bin/mcsm replay {server.record}")
+    return report
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m mcsm_client.demo`` (what ``make run`` executes)."""
+    p = argparse.ArgumentParser(prog="python -m mcsm_client.demo",
+                                description="Start a server, run the paper simulation and the "
+                                            "multi-robot demo against it, print the accuracy.")
+    p.add_argument("--samples", type=int, default=DemoConfig.n_samples, metavar="N",
+                   help=f"samples per AT (default {DemoConfig.n_samples})")
+    p.add_argument("--iterations", type=int, default=DemoConfig.n_iterations,
+                   help=f"simulation iterations (default {DemoConfig.n_iterations}, one lap)")
+    p.add_argument("--sigma-theta-deg", type=float, default=0.0,
+                   help="odometry heading noise in degrees (default 0, PAPER Fig. 4)")
+    p.add_argument("--seed", type=int, default=DemoConfig.seed)
+    p.add_argument("--out", type=Path, default=None,
+                   help="output folder (default recordings/run-<UTC time>/)")
+    p.add_argument("--no-multirobot", action="store_true", help="skip the multi-robot part")
+    args = p.parse_args(argv)
+    if args.samples < 2 or args.iterations < 1:
+        p.error("--samples must be >= 2 and --iterations >= 1")
+    cfg = DemoConfig(n_samples=args.samples, n_iterations=args.iterations,
+                     sigma_theta_deg=args.sigma_theta_deg, seed=args.seed, out_dir=args.out,
+                     multirobot=not args.no_multirobot)
+    try:
+        run_demo(cfg)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    except RuntimeError as exc:
+        print(f"demo failed: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
