@@ -1,0 +1,468 @@
+"""``mcsm-client``: talk to an ``mcsm serve`` map from the shell.
+
+Commands (each takes the connection flags ``--connect``, ``--map``, ``--prefix``,
+``--zenoh-config``, and ``--timeout-s``)::
+
+    mcsm-client info [--json]
+    mcsm-client update A B --planar DX DY DTH --sigma SX SY STH     # AT a->b, N samples drawn
+    mcsm-client update A B --pose X Y Z QW QX QY QZ --sigma S1..S6  # 3D, tangent [t, r] sigmas
+    mcsm-client update A B --point X Y [Z] --sigma SX SY [SZ]       # point frame b seen from a
+    mcsm-client query A B [--json] [--samples-out FILE.npy]
+    mcsm-client remove FRAME
+    mcsm-client watch [--count K] [--duration-s S]
+    mcsm-client play FILE|gtsam:NAME [--bounded] [--order file|pose] [--max-constraints K]
+    mcsm-client sim [--iterations 340] [--sigma-theta-deg 0] [--csv F] [--png F]
+    mcsm-client multirobot [--connect-b ENDPOINT | --map-b NAME]
+
+``play``, ``sim`` and ``multirobot`` also run without a server with ``--in-process N`` (an
+in-process map of N samples). ``--cov`` gives a full covariance (row-major) instead of
+``--sigma``. Exit codes: 0 success, 1 the server refused the request (its error is printed),
+2 bad command line or input file, 3 no server answered in time, 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from mcsm.errors import McsmError, Timeout
+
+from mcsm_client.connect import add_connection_args, client_kwargs
+
+EXIT_OK, EXIT_REFUSED, EXIT_USAGE, EXIT_TIMEOUT, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
+
+
+class UsageError(Exception):
+    """A command-line value that argparse alone cannot check."""
+
+
+def _add_common(p: argparse.ArgumentParser) -> None:
+    add_connection_args(p)
+    p.add_argument("--timeout-s", type=float, default=10.0,
+                   help="deadline of one request attempt, seconds (default 10)")
+
+
+def _add_in_process(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--in-process", type=int, default=None, metavar="N",
+                   help="no server: use an in-process map with N samples per AT")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser (exposed for tests and docs)."""
+    p = argparse.ArgumentParser(
+        prog="mcsm-client",
+        description="Client of the Monte Carlo stochastic map server (mcsm serve).",
+        epilog="Exit codes: 0 ok, 1 refused by the server, 2 usage or input error, "
+               "3 no reply in time, 130 interrupted.")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    s = sub.add_parser("info", help="frames, components, N, sequence number and digest")
+    s.add_argument("--json", action="store_true", help="one JSON object")
+    _add_common(s)
+
+    s = sub.add_parser("update", help="send one observation (samples drawn from mean + noise)",
+                       description="Draw N samples (N = the map's) from a mean and a Gaussian "
+                                   "noise model and apply them as the AT A->B (or the point B "
+                                   "seen from A).")
+    s.add_argument("a", help="source frame")
+    s.add_argument("b", help="target frame")
+    kind = s.add_mutually_exclusive_group(required=True)
+    kind.add_argument("--planar", nargs=3, type=float, metavar=("DX", "DY", "DTHETA"),
+                      help="planar AT: B in A's frame (m, m, rad)")
+    kind.add_argument("--pose", nargs=7, type=float,
+                      metavar=("X", "Y", "Z", "QW", "QX", "QY", "QZ"),
+                      help="3D AT: B in A's frame, scalar-first quaternion")
+    kind.add_argument("--point", nargs="+", type=float, metavar="X",
+                      help="point B in A's frame: X Y [Z] (m)")
+    noise = s.add_mutually_exclusive_group(required=True)
+    noise.add_argument("--sigma", nargs="+", type=float, metavar="S",
+                       help="standard deviations (planar: 3; pose: 6 as tx ty tz rx ry rz; "
+                            "point: 2 or 3)")
+    noise.add_argument("--cov", nargs="+", type=float, metavar="C",
+                       help="full covariance, row-major (9, 36, 4 or 9 numbers)")
+    s.add_argument("--seed", type=int, default=None, help="random seed (default: fresh)")
+    s.add_argument("--json", action="store_true")
+    _add_common(s)
+
+    s = sub.add_parser("query", help="the relation A->B: mean and covariance (or samples)")
+    s.add_argument("a")
+    s.add_argument("b")
+    s.add_argument("--samples-out", type=Path, default=None, metavar="FILE.npy",
+                   help="also save the (N, 7) samples as a .npy file")
+    s.add_argument("--json", action="store_true")
+    _add_common(s)
+
+    s = sub.add_parser("remove", help="remove a frame (other estimates unchanged)")
+    s.add_argument("frame")
+    s.add_argument("--json", action="store_true")
+    _add_common(s)
+
+    s = sub.add_parser("watch", help="print the map's events as they happen (Ctrl-C stops)")
+    s.add_argument("--count", type=int, default=None, help="stop after this many events")
+    s.add_argument("--duration-s", type=float, default=None, help="stop after this long")
+    s.add_argument("--json", action="store_true", help="one JSON object per event")
+    _add_common(s)
+
+    s = sub.add_parser("play", help="stream a dataset file into the map",
+                       description="Read a g2o (2D/3D), TORO .graph or Victoria Park text "
+                                   "file (or gtsam:NAME from the gtsam wheel's data) and send "
+                                   "its constraints in order: odometry and loop closures as "
+                                   "ATs, landmark sightings as point updates.")
+    s.add_argument("file", help="dataset path, or gtsam:NAME (e.g. gtsam:victoria_park.txt)")
+    s.add_argument("--bounded", action="store_true",
+                   help="keep only the first pose, the current pose and the landmarks")
+    s.add_argument("--order", choices=("file", "pose"), default="file",
+                   help="file order, or each constraint once its newest pose exists")
+    s.add_argument("--max-constraints", type=int, default=None, metavar="K")
+    s.add_argument("--noise", choices=("auto", "information", "sqrt_information",
+                                       "covariance"), default="auto",
+                   help="how to read g2o noise numbers (default: auto-detect)")
+    s.add_argument("--stop-on-error", action="store_true",
+                   help="stop at the first refused update (default: count and go on)")
+    s.add_argument("--no-progress", action="store_true")
+    s.add_argument("--json", action="store_true", help="print the summary as JSON")
+    _add_in_process(s)
+    _add_common(s)
+
+    s = sub.add_parser("sim", help="the paper's §6 simulation: RMS and NEES vs ground truth")
+    s.add_argument("--iterations", type=int, default=340, help="odometry steps (340: one lap)")
+    s.add_argument("--sigma-theta-deg", type=float, default=0.0,
+                   help="odometry heading noise, degrees (paper: 0 and 0.1)")
+    s.add_argument("--landmarks", type=int, default=200)
+    s.add_argument("--score-every", type=int, default=10)
+    s.add_argument("--unbounded", action="store_true", help="keep every pose frame")
+    s.add_argument("--csv", type=Path, default=None, help="write per-iteration scores here")
+    s.add_argument("--png", type=Path, default=None, help="plot here (needs matplotlib)")
+    s.add_argument("--json", action="store_true")
+    _add_in_process(s)
+    _add_common(s)
+
+    s = sub.add_parser("multirobot", help="two robots' maps joined at a rendezvous, then a "
+                                          "loop closed across them")
+    s.add_argument("--connect-b", default=None, metavar="ENDPOINT",
+                   help="robot B's own server (default: B's component in the same map)")
+    s.add_argument("--map-b", default=None, metavar="NAME",
+                   help="robot B's own map on the same server")
+    s.add_argument("--json", action="store_true")
+    _add_in_process(s)
+    _add_common(s)
+    return p
+
+
+# ----------------------------------------------------------------------------- helpers
+
+def _client(args: argparse.Namespace, **over: Any) -> Any:
+    from mcsm_client.client import MapClient
+
+    kw = client_kwargs(args)
+    kw.update(over)
+    return MapClient(timeout_s=args.timeout_s, **kw)
+
+
+def _noise_cov(values: list[float], dim: int, as_sigma: bool) -> np.ndarray:
+    v = np.asarray(values, dtype=np.float64)
+    if as_sigma:
+        if v.shape != (dim,):
+            raise UsageError(f"--sigma needs {dim} numbers here, got {v.size}")
+        if np.any(v < 0) or not np.all(np.isfinite(v)):
+            raise UsageError("--sigma values must be finite and >= 0")
+        return np.diag(v**2)
+    if v.size != dim * dim:
+        raise UsageError(f"--cov needs {dim * dim} numbers here, got {v.size}")
+    return v.reshape(dim, dim)
+
+
+def _print(args: argparse.Namespace, obj: dict[str, Any], text: str) -> None:
+    print(json.dumps(obj, default=_jsonable) if getattr(args, "json", False) else text,
+          flush=True)
+
+
+def _jsonable(x: Any) -> Any:
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, (np.floating, np.integer)):
+        return x.item()
+    if isinstance(x, (tuple, set)):
+        return list(x)
+    return str(x)
+
+
+def _ack_dict(ack: Any) -> dict[str, Any]:
+    return {"seq": ack.seq, "op": ack.op, "kind": ack.kind, "component": ack.component,
+            "frames_added": list(ack.frames_added), "frames_removed": list(ack.frames_removed),
+            "duplicate": ack.duplicate}
+
+
+def _ack_text(ack: Any) -> str:
+    extra = ""
+    if ack.frames_added:
+        extra += f" added={','.join(ack.frames_added)}"
+    if ack.frames_removed:
+        extra += f" removed={','.join(ack.frames_removed)}"
+    return f"ok seq={ack.seq} {ack.kind} component={ack.component}{extra}"
+
+
+class _Progress:
+    """A one-line text progress bar on stderr, redrawn at most 5 times a second."""
+
+    def __init__(self, label: str, enabled: bool = True) -> None:
+        self.label = label
+        self.enabled = enabled
+        self._last = 0.0
+        self._t0 = time.monotonic()
+
+    def __call__(self, done: int, total: int, *_: Any) -> None:
+        now = time.monotonic()
+        if not self.enabled or (now - self._last < 0.2 and done < total):
+            return
+        self._last = now
+        width = 30
+        frac = done / total if total else 1.0
+        bar = "#" * int(width * frac) + "." * (width - int(width * frac))
+        rate = done / max(now - self._t0, 1e-9)
+        sys.stderr.write(f"\r{self.label} [{bar}] {done}/{total} ({rate:.0f}/s)")
+        if done >= total:
+            sys.stderr.write("\n")
+        sys.stderr.flush()
+
+
+# ----------------------------------------------------------------------------- commands
+
+def cmd_info(args: argparse.Namespace) -> int:
+    with _client(args) as c:
+        info = c.info()
+    obj = {"map": info.map, "n_samples": info.n_samples, "options": info.options,
+           "seq": info.seq, "digest": info.digest, "n_frames": info.n_frames,
+           "components": {k: list(v) for k, v in info.components.items()},
+           "rejected": info.rejected, "server_id": info.server_id,
+           "recording": info.recording}
+    comps = ", ".join(f"{root} ({len(frames)} frames)" for root, frames in
+                      list(info.components.items())[:10])
+    more = " ..." if len(info.components) > 10 else ""
+    text = (f"map {info.map!r}: N={info.n_samples}, {info.n_frames} frames in "
+            f"{len(info.components)} components{': ' + comps + more if comps else ''}\n"
+            f"seq {info.seq}, digest {info.digest}\n"
+            f"rejected inputs {info.rejected}; recording {info.recording or '-'}")
+    _print(args, obj, text)
+    return EXIT_OK
+
+
+def cmd_update(args: argparse.Namespace) -> int:
+    from mcsm_client.sampling import sample_planar, sample_point, sample_pose
+
+    as_sigma = args.sigma is not None
+    noise = args.sigma if as_sigma else args.cov
+    rng = np.random.default_rng(args.seed)
+    if args.point is not None and len(args.point) not in (2, 3):
+        raise UsageError("--point takes X Y or X Y Z")
+    with _client(args) as c:
+        n = c.info().n_samples
+        try:
+            if args.planar is not None:
+                x = sample_planar(args.planar, _noise_cov(noise, 3, as_sigma), n_samples=n,
+                                  rng=rng)
+                ack = c.update(args.a, args.b, x)
+            elif args.pose is not None:
+                x = sample_pose(args.pose, _noise_cov(noise, 6, as_sigma), n_samples=n,
+                                rng=rng)
+                ack = c.update(args.a, args.b, x)
+            else:
+                d = len(args.point)
+                p = sample_point(args.point, _noise_cov(noise, d, as_sigma), n_samples=n,
+                                 rng=rng)
+                ack = c.update_point(args.a, args.b, p)
+        except ValueError as exc:
+            raise UsageError(str(exc)) from None
+    _print(args, _ack_dict(ack), _ack_text(ack))
+    return EXIT_OK
+
+
+def cmd_query(args: argparse.Namespace) -> int:
+    with _client(args) as c:
+        mean, cov = c.marginal(args.a, args.b)
+        if args.samples_out is not None:
+            samples = c.query(args.a, args.b)
+            args.samples_out.parent.mkdir(parents=True, exist_ok=True)
+            np.save(args.samples_out, samples)
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    with np.printoptions(precision=5, suppress=True, linewidth=100):
+        text = (f"{args.a} -> {args.b}\n"
+                f"mean  x y z qw qx qy qz: {mean}\n"
+                f"sigma tx ty tz rx ry rz: {sd}\n"
+                f"covariance (6x6):\n{cov}")
+    if args.samples_out is not None:
+        text += f"\nsamples saved to {args.samples_out}"
+    _print(args, {"a": args.a, "b": args.b, "mean": mean, "cov": cov}, text)
+    return EXIT_OK
+
+
+def cmd_remove(args: argparse.Namespace) -> int:
+    with _client(args) as c:
+        ack = c.remove(args.frame)
+    _print(args, _ack_dict(ack), _ack_text(ack))
+    return EXIT_OK
+
+
+def cmd_watch(args: argparse.Namespace) -> int:
+    deadline = None if args.duration_s is None else time.monotonic() + args.duration_s
+    seen = 0
+    with _client(args) as c, c.watch() as events:
+        if not args.json:
+            print(f"watching map {c.map!r} (Ctrl-C to stop)", file=sys.stderr, flush=True)
+        while (args.count is None or seen < args.count) and \
+                (deadline is None or time.monotonic() < deadline):
+            ev = events.get(0.2)
+            if ev is None:
+                continue
+            seen += 1
+            obj = {"seq": ev.seq, "op": ev.op, "kind": ev.kind, "frames": list(ev.frames),
+                   "component": ev.component, "time_ns": ev.time_ns, "digest": ev.digest}
+            digest = f" digest={ev.digest[:16]}" if ev.digest else ""
+            _print(args, obj, f"seq {ev.seq:6d} {ev.op:<8} {ev.kind:<14} "
+                              f"{','.join(ev.frames):<24} component={ev.component}{digest}")
+    return EXIT_OK
+
+
+def _map_for(args: argparse.Namespace) -> tuple[Any, Any]:
+    """(target, closer): an in-process map or a connected client."""
+    if args.in_process is not None:
+        from mcsm import StochasticMap
+
+        if args.in_process < 2:
+            raise UsageError("--in-process N needs N >= 2")
+        return StochasticMap(args.in_process), None
+    c = _client(args)
+    return c, c
+
+
+def cmd_play(args: argparse.Namespace) -> int:
+    from mcsm_client.datasets import DatasetError, read_dataset
+    from mcsm_client.players import play
+
+    try:
+        ds = read_dataset(args.file, noise=args.noise)
+    except (OSError, DatasetError, ValueError) as exc:
+        raise UsageError(str(exc)) from None
+    counts = ds.counts()
+    print(f"{ds.name}: {len(ds.constraints)} constraints ({counts['odometry']} odometry, "
+          f"{counts['loop_closure']} loop closures, {counts['landmark']} landmark sightings; "
+          f"{counts['poses']} poses, {counts['landmarks']} landmarks; noise read as "
+          f"{ds.noise})", file=sys.stderr, flush=True)
+    target, closer = _map_for(args)
+    try:
+        stats = play(ds, target, rng=np.random.default_rng(args.seed), bounded=args.bounded,
+                     order=args.order, max_constraints=args.max_constraints,
+                     progress=_Progress("play", not args.no_progress),
+                     stop_on_error=args.stop_on_error)
+    finally:
+        if closer is not None:
+            closer.close()
+    obj = {"file": ds.name, "total": stats.total, "applied": stats.applied,
+           "results": stats.results, "skipped": stats.skipped, "rejected": stats.rejected,
+           "removed": stats.removed, "elapsed_s": stats.elapsed_s,
+           "first_error": stats.first_error}
+    text = stats.summary() + (f"\nfirst refusal: {stats.first_error}" if stats.first_error
+                              else "")
+    _print(args, obj, text)
+    return EXIT_REFUSED if stats.rejected else EXIT_OK
+
+
+def cmd_sim(args: argparse.Namespace) -> int:
+    from mcsm_client.sim import SimConfig, plot_results, run_sim
+
+    if args.iterations < 1 or args.score_every < 1 or args.landmarks < 1:
+        raise UsageError("--iterations, --score-every and --landmarks must be >= 1")
+    cfg = SimConfig(n_iterations=args.iterations, sigma_theta_deg=args.sigma_theta_deg,
+                    n_landmarks=args.landmarks, score_every=args.score_every,
+                    bounded=not args.unbounded)
+    target, closer = _map_for(args)
+
+    def show(row: Any) -> None:
+        if not args.json:
+            print(f"iteration {row.iteration:5d}: {row.n_landmarks:3d} landmarks, "
+                  f"RMS {row.rms_m:.3f} m, NEES/dof {row.nees_per_dof:.2f}", flush=True)
+
+    try:
+        res = run_sim(cfg, target, rng=np.random.default_rng(args.seed), progress=show)
+    finally:
+        if closer is not None:
+            closer.close()
+    if args.csv is not None:
+        res.write_csv(args.csv)
+    if args.png is not None:
+        try:
+            plot_results({f"N={res.n_samples}": res}, args.png)
+        except ImportError as exc:
+            print(f"mcsm-client sim: {exc}", file=sys.stderr)
+            return EXIT_USAGE
+    _print(args, res.as_dict(), res.summary())
+    return EXIT_OK
+
+
+def cmd_multirobot(args: argparse.Namespace) -> int:
+    from mcsm_client.multirobot import MultiRobotConfig, run_multirobot
+
+    if args.connect_b and args.map_b and args.in_process is not None:
+        raise UsageError("--in-process cannot be combined with --connect-b/--map-b")
+    rng = np.random.default_rng(args.seed)
+    cfg = MultiRobotConfig()
+    log = None if args.json else (lambda s: print(s, flush=True))
+    if args.in_process is not None:
+        from mcsm import StochasticMap
+
+        a_map: Any = StochasticMap(args.in_process)
+        b_map: Any = StochasticMap(args.in_process)
+        res = run_multirobot(cfg, a_map, b_map, rng=rng, log=log)
+    else:
+        with _client(args) as ca:
+            if args.connect_b or args.map_b:
+                over: dict[str, Any] = {}
+                if args.connect_b:
+                    over["connect"] = args.connect_b
+                if args.map_b:
+                    over["map"] = args.map_b
+                with _client(args, **over) as cb:
+                    res = run_multirobot(cfg, ca, cb, rng=rng, log=log)
+            else:
+                res = run_multirobot(cfg, ca, rng=rng, log=log)
+    obj = {"scores": [vars(s) for s in res.scores], "join": res.join_kind,
+           "import": res.import_kind, "cross_loop_closures": res.cross_loop_closures,
+           "elapsed_s": res.elapsed_s}
+    _print(args, obj, res.summary())
+    return EXIT_OK
+
+
+COMMANDS = {"info": cmd_info, "update": cmd_update, "query": cmd_query, "remove": cmd_remove,
+            "watch": cmd_watch, "play": cmd_play, "sim": cmd_sim, "multirobot": cmd_multirobot}
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``mcsm-client`` console script; returns the exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    prog = f"mcsm-client {args.command}"
+    try:
+        return COMMANDS[args.command](args)
+    except UsageError as exc:
+        print(f"{prog}: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except Timeout as exc:
+        print(f"{prog}: no answer from the server: {exc.message} (is `mcsm serve` running, "
+              f"and do --connect/--map/--prefix match it?)", file=sys.stderr)
+        return EXIT_TIMEOUT
+    except McsmError as exc:
+        print(f"{prog}: refused: {type(exc).__name__}: {exc.message}", file=sys.stderr)
+        return EXIT_REFUSED
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
