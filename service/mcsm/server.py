@@ -120,7 +120,7 @@ class Server:
                      "complete" if rep.complete else f"truncated: {rep.tail_error}")
             for st in self.states.values():
                 if self.recorder is not None:
-                    self.recorder.checkpoint(st.name, st.seq, st.map.state_digest(), "restore")
+                    self.recorder.checkpoint(st.name, st.seq, st.digest(), "restore")
         for name in o.maps:
             if name in self.states:
                 if self.states[name].map.options() != StochasticMap.from_options(
@@ -178,7 +178,7 @@ class Server:
         if self.recorder is not None and not self.recorder.closed:
             if not self.failed.is_set():
                 for st in self.states.values():
-                    self.recorder.checkpoint(st.name, st.seq, st.map.state_digest(), "close")
+                    self.recorder.checkpoint(st.name, st.seq, st.digest(), "close")
             self.recorder.close()
             log.info("recording closed: %s (%d inputs)", self.recorder.path,
                      self.recorder.n_inputs)
@@ -304,7 +304,7 @@ class Server:
                 self.recorder.input(item.op, st.name, ack.seq, item.recv_ns, item.sender,
                                     req.request_id, item.payload)
                 if ack.seq % self.opts.checkpoint_every == 0:
-                    digest = st.map.state_digest()
+                    digest = st.digest()
                     self.recorder.checkpoint(st.name, ack.seq, digest, "periodic")
         except (OSError, ValueError) as exc:
             # The map holds an input the file does not: stop rather than acknowledge it.
@@ -332,7 +332,7 @@ class Server:
             rejected, by_error = st.rejected, dict(st.rejected_by_error)
         return wire.MapInfo(
             map=st.name, n_samples=st.n_samples, options=m.options(), seq=st.seq,
-            digest=m.state_digest(), frames=tuple(m.frames()),
+            digest=st.digest(), frames=tuple(m.frames()),
             components={r: tuple(m.component(r)) for r in m.components()},
             rejected=rejected, rejected_by_error=by_error, server_id=self.server_id,
             recording=str(self.recorder.path) if self.recorder is not None else "",

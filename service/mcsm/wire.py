@@ -299,7 +299,7 @@ def pack(obj: Mapping[str, Any]) -> bytes:
 
 
 def unpack(payload: bytes | bytearray | memoryview, *, max_bytes: int = MAX_PAYLOAD_BYTES,
-           ) -> dict[str, Any]:
+           max_map_len: int = 64) -> dict[str, Any]:
     """Bounded msgpack decode of one message map; checks the version.
 
     Raises
@@ -322,7 +322,7 @@ def unpack(payload: bytes | bytearray | memoryview, *, max_bytes: int = MAX_PAYL
         obj = msgpack.unpackb(
             payload, raw=False, strict_map_key=True, use_list=True,
             max_bin_len=max_bytes, max_str_len=64 * 1024, max_array_len=MAX_SUBMAP_FRAMES,
-            max_map_len=64, max_ext_len=0,
+            max_map_len=max_map_len, max_ext_len=0,
         )
     except (ValueError, TypeError, OverflowError, msgpack.UnpackException) as exc:
         # ExtraData, FormatError, StackError, "incomplete input", bad UTF-8 are ValueErrors
@@ -672,7 +672,8 @@ def encode_info_reply(info: MapInfo) -> bytes:
 
 
 def decode_info_reply(payload: bytes) -> MapInfo:
-    d = unpack(payload, max_bytes=MAX_REPLY_BYTES)
+    # one entry per component: allow as many as a map may have frames
+    d = unpack(payload, max_bytes=MAX_REPLY_BYTES, max_map_len=MAX_SUBMAP_FRAMES)
     _keys(d, ("map", "n_samples", "options", "seq", "digest", "frames", "components",
               "rejected", "rejected_by_error", "server_id", "recording"), ("queue_length",))
     if not isinstance(d["options"], dict) or not isinstance(d["components"], dict):

@@ -17,7 +17,14 @@ import pytest
 import zenoh
 from mcsm import StochasticMap, wire
 from mcsm.core.quat import qexp
-from mcsm.errors import InvalidSamples, NotRelated, SampleCountMismatch, Timeout, UnknownFrame
+from mcsm.errors import (
+    InvalidSamples,
+    LimitExceeded,
+    NotRelated,
+    SampleCountMismatch,
+    Timeout,
+    UnknownFrame,
+)
 from mcsm.recording import replay
 from mcsm.server import Server, ServerOptions
 from mcsm_client.client import MapClient
@@ -209,3 +216,52 @@ def test_connection_args_and_configs(tmp_path: Path) -> None:
     cd: dict[str, Any] = {"mode": "client", "connect": {"endpoints": ["tcp/127.0.0.1:5"]}}
     assert json.loads(client_config("tcp/127.0.0.1:6", cd).get_json("connect/endpoints")) == [
         "tcp/127.0.0.1:6"]
+
+
+def test_full_queue_answers_busy_at_once(tmp_path: Path) -> None:
+    """Queue of 1, worker held on the first request: the second waits in the queue, the third
+    is refused at once with LimitExceeded; releasing the worker completes the first two."""
+    ep = free_endpoint()
+    session = zenoh.open(server_config(ep))
+    srv = Server(session, ServerOptions(map_options={"n_samples": N}, record=tmp_path / "q.mcap",
+                                        queue_size=1))
+    release, holding = threading.Event(), threading.Event()
+    handle = srv._handle
+
+    def held(item: Any) -> None:
+        holding.set()
+        release.wait(20.0)
+        handle(item)
+
+    srv._handle = held  # type: ignore[method-assign]
+    srv.start()
+    rng = np.random.default_rng(6605)
+    results: dict[str, Any] = {}
+
+    def call(name: str, a: str, b: str) -> None:
+        with MapClient(connect=ep, timeout_s=20, retries=0) as c:
+            results[name] = c.update(a, b, at(rng, [1, 0, 0]))
+
+    try:
+        t1 = threading.Thread(target=call, args=("first", "a", "b"))
+        t1.start()
+        assert holding.wait(10.0)
+        with MapClient(connect=ep, timeout_s=20, retries=0) as c:
+            t2 = threading.Thread(target=call, args=("second", "c", "d"))
+            t2.start()
+            deadline = time.monotonic() + 10
+            while srv._queue.qsize() < 1 and time.monotonic() < deadline:
+                time.sleep(0.005)  # polling the queue length
+            assert srv._queue.qsize() == 1
+            with pytest.raises(LimitExceeded, match="queue"):
+                c.update("e", "f", at(rng, [1, 0, 0]))
+            release.set()
+            t1.join(20)
+            t2.join(20)
+            assert {results["first"].seq, results["second"].seq} == {1, 2}
+            info = c.info()
+            assert info.seq == 2 and info.rejected_by_error == {"LimitExceeded": 1}
+    finally:
+        release.set()
+        srv.close()
+        session.close()

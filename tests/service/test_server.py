@@ -7,6 +7,7 @@ nor the recording; retried ids are not applied twice; SIGKILL loses no acknowled
 
 from __future__ import annotations
 
+import json
 import signal
 import threading
 import time
@@ -22,7 +23,7 @@ from mcsm.errors import FrameExists, McsmError, Timeout, UnknownFrame
 from mcsm.recording import replay
 from mcsm_client.client import MapClient
 
-from tests.service.daemon_util import Daemon, noisy_at, start_daemon
+from tests.service.daemon_util import Daemon, free_port, noisy_at, start_daemon
 from tests.wire_cases import CASES
 
 N = 32
@@ -277,3 +278,26 @@ def test_sigkill_then_restore_keeps_every_acknowledged_update(
     assert rep.identical and rep.complete, rep.divergence
     assert rep.states["default"].map.state_digest() == local.state_digest()
     assert rep.checkpoints_ok >= 3
+
+
+def test_zenoh_config_file_passes_through(tmp_path: Path, daemons: list[Daemon]) -> None:
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    conf = tmp_path / "server.json5"
+    conf.write_text(json.dumps({
+        "mode": "peer", "listen": {"endpoints": [ep]}, "connect": {"endpoints": []},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "transport": {"shared_memory": {"enabled": False}}}))
+    d = start_daemon(tmp_path, "--samples", "8", "--zenoh-config", str(conf), endpoint=ep)
+    daemons.append(d)
+    with MapClient(connect=ep, timeout_s=5) as c:
+        assert c.info().n_samples == 8
+    assert d.stop(signal.SIGINT) == 0
+    assert replay(d.record).complete
+
+
+def test_serve_refuses_an_existing_record_path(tmp_path: Path) -> None:
+    existing = tmp_path / "old.mcap"
+    existing.write_bytes(b"keep me")
+    code = mcsm_main(["serve", "--listen", f"tcp/127.0.0.1:{free_port()}", "--record",
+                      str(existing), "--log-level", "ERROR"])
+    assert code == 2 and existing.read_bytes() == b"keep me"

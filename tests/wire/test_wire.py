@@ -82,6 +82,10 @@ def test_ack_info_event_error_round_trip() -> None:
     info = wire.MapInfo("default", 100, {"n_samples": 100, "method": "joint"}, 3, "ab" * 32,
                         ("w", "r"), {"w": ("w", "r")}, 2, {"BadMessage": 2}, "zid", "x.mcap", 1)
     assert wire.decode_info_reply(wire.encode_info_reply(info)) == info
+    many = {f"r{i}": (f"r{i}", f"s{i}") for i in range(500)}  # more maps entries than requests
+    big = wire.MapInfo("m", 10, {}, 1, "d", tuple(f for v in many.values() for f in v), many, 0,
+                       {}, "z", "")
+    assert wire.decode_info_reply(wire.encode_info_reply(big)).components == many
     ev = wire.Event("default", 5, "remove", "remove", ("r",), None, 123, None)
     assert wire.decode_event(wire.encode_event(ev)) == ev
     err = wire.decode_error(wire.encode_error(UnknownFrame("ghost"), "r-2"))

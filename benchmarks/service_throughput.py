@@ -1,0 +1,250 @@
+"""Service throughput: acknowledged updates/s, query round trip, replay speed (prints figures).
+
+Run by hand: ``.venv/bin/python benchmarks/service_throughput.py [--samples 1000] [--quick]``.
+
+A real ``mcsm serve`` subprocess (embedded Zenoh peer on a free loopback port, recording on,
+``Writer.flush()`` before every ack) and a ``MapClient`` in this process. For each
+configuration the same operations are also applied in-process (``MapState.apply``, no I/O), so
+the table separates the core's cost from transport + decode + recording. Replay speed is
+``mcsm.recording.replay`` on the very file the live run wrote. No assertions, no pass/fail.
+
+Configurations (N samples per AT, default 1000):
+
+* ``small``: a bounded robot map of at most 10 frames: per step one odometry update (new
+  pose frame), one re-observation of one of 5 fixed landmark frames (case II loop closure),
+  and one remove of the previous pose. Every one of them is an acknowledged operation.
+* ``frames200``: a 200-frame component (odometry chain), then odometry updates and loop
+  closures at M ~ 200.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import queue
+import signal
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from mcsm import StochasticMap
+from mcsm.core.quat import qexp
+from mcsm.recording import MapState, decode_input, replay
+from mcsm_client.client import MapClient
+
+Op = tuple[str, str, str, np.ndarray | None]
+
+
+def at(rng: np.random.Generator, n: int, t: list[float], yaw: float = 0.0) -> np.ndarray:
+    x = np.empty((n, 7))
+    x[:, :3] = np.asarray(t) + 0.05 * rng.standard_normal((n, 3))
+    w = 0.01 * rng.standard_normal((n, 3))
+    w[:, 2] += yaw
+    x[:, 3:] = qexp(w)
+    return x
+
+
+def start_server(workdir: Path, n: int, name: str) -> tuple[subprocess.Popen[str], str, Path]:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        ep = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    rec = workdir / f"{name}.mcap"
+    log = open(workdir / f"{name}.log", "w")  # noqa: SIM115 - lives as long as the server
+    proc = subprocess.Popen([sys.executable, "-m", "mcsm.cli", "serve", "--listen", ep,
+                             "--samples", str(n), "--record", str(rec), "--log-level", "WARNING"],
+                            stdout=subprocess.PIPE, stderr=log, text=True,
+                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    lines: queue.Queue[str] = queue.Queue()
+    assert proc.stdout is not None
+    out = proc.stdout
+    threading.Thread(target=lambda: [lines.put(x) for x in out], daemon=True).start()
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        try:
+            if lines.get(timeout=0.2).startswith("listening on"):
+                return proc, ep, rec
+        except queue.Empty:
+            if proc.poll() is not None:
+                break
+    proc.kill()
+    raise SystemExit(f"server did not start; see {workdir / f'{name}.log'}")
+
+
+def stop_server(proc: subprocess.Popen[str]) -> None:
+    proc.send_signal(signal.SIGINT)
+    try:
+        proc.wait(timeout=60)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(timeout=10)
+
+
+def small_map_ops(rng: np.random.Generator, n: int, steps: int) -> tuple[list[Op], list[Op]]:
+    """Setup (5 landmarks + first pose) and the measured bounded-map steps (3 ops each)."""
+    setup: list[Op] = [("update", "lm0", f"lm{k}", at(rng, n, [float(k), 2.0, 0.0]))
+                       for k in range(1, 5)]
+    setup.append(("update", "lm0", "pose0", at(rng, n, [0.0, -2.0, 0.0])))
+    ops: list[Op] = []
+    for i in range(steps):
+        ops.append(("update", f"pose{i}", f"pose{i + 1}", at(rng, n, [0.2, 0.0, 0.0], 0.01)))
+        ops.append(("update", f"pose{i + 1}", f"lm{i % 5}", at(rng, n, [0.5, 4.0, 0.0])))
+        ops.append(("remove", f"pose{i}", "", None))
+    return setup, ops
+
+
+def frames200_ops(rng: np.random.Generator, n: int, steps: int) -> tuple[list[Op], list[Op]]:
+    """A 200-frame chain, then per step: odometry (new frame), remove the oldest frame (M stays
+    200; removing the root re-roots), and every other step a loop closure across the chain."""
+    setup: list[Op] = [("update", f"f{i}", f"f{i + 1}", at(rng, n, [1.0, 0.0, 0.0]))
+                       for i in range(199)]
+    ops: list[Op] = []
+    head, oldest = 199, 0
+    for i in range(steps):
+        ops.append(("update", f"f{head}", f"f{head + 1}", at(rng, n, [1.0, 0.0, 0.0])))
+        head += 1
+        ops.append(("remove", f"f{oldest}", "", None))
+        oldest += 1
+        if i % 2 == 1:
+            ops.append(("update", f"f{oldest}", f"f{head}",
+                        at(rng, n, [float(head - oldest), 0.0, 0.0])))
+    return setup, ops
+
+
+def send(c: MapClient, op: Op) -> str:
+    kind, a, b, x = op
+    if kind == "remove":
+        return c.remove(a).kind
+    return c.update(a, b, x).kind
+
+
+def core_only(n: int, setup: list[Op], batches: list[list[Op]]) -> list[float]:
+    """Seconds per batch applying the same ops in-process (decode + core, no I/O)."""
+    from mcsm import wire
+
+    st = MapState("default", StochasticMap(n))
+    rid = iter(range(10**9))
+
+    def apply(op: Op) -> None:
+        kind, a, b, x = op
+        if kind == "remove":
+            st.apply("remove", decode_input("remove", wire.encode_remove(f"r{next(rid)}", a), n))
+        else:
+            st.apply("update", decode_input("update",
+                                            wire.encode_update(f"r{next(rid)}", a, b, x), n))
+
+    for op in setup:
+        apply(op)
+    out = []
+    for batch in batches:
+        t0 = time.perf_counter_ns()
+        for op in batch:
+            apply(op)
+        out.append((time.perf_counter_ns() - t0) / 1e9)
+    return out
+
+
+def stats(xs: list[float]) -> dict[str, float]:
+    s = sorted(xs)
+    return {"median": statistics.median(s), "p10": s[max(0, int(0.1 * len(s)) - 1)],
+            "p90": s[min(len(s) - 1, int(0.9 * len(s)))]}
+
+
+def run_config(name: str, n: int, setup: list[Op], ops: list[Op], repeats: int,
+               workdir: Path, rng: np.random.Generator, query_pair: tuple[str, str],
+               n_queries: int) -> dict[str, Any]:
+    per = len(ops) // repeats
+    batches = [ops[k * per:(k + 1) * per] for k in range(repeats)]
+    proc, ep, rec = start_server(workdir, n, name)
+    try:
+        with MapClient(connect=ep, timeout_s=60) as c:
+            for op in setup:
+                send(c, op)
+            live = []
+            kinds: dict[str, int] = {}
+            for batch in batches:
+                t0 = time.perf_counter_ns()
+                for op in batch:
+                    k = send(c, op)
+                    kinds[k] = kinds.get(k, 0) + 1
+                live.append((time.perf_counter_ns() - t0) / 1e9)
+            frames = c.info().n_frames
+            a, b = query_pair
+            for _ in range(20):  # warm-up
+                c.query(a, b)
+            q_rtt, m_rtt = [], []
+            for _ in range(n_queries):
+                t0 = time.perf_counter_ns()
+                c.query(a, b)
+                q_rtt.append((time.perf_counter_ns() - t0) / 1e6)
+            for _ in range(max(20, n_queries // 4)):
+                t0 = time.perf_counter_ns()
+                c.marginal(a, b)
+                m_rtt.append((time.perf_counter_ns() - t0) / 1e6)
+    finally:
+        stop_server(proc)
+    core = core_only(n, setup, batches)
+    rep = replay(rec)
+    n_total = len(setup) + per * repeats
+    live_rates = [per / t for t in live]
+    core_rates = [per / t for t in core]
+    return {
+        "config": name, "n_samples": n, "frames_at_end": frames, "ops_per_batch": per,
+        "repeats": repeats, "kinds": kinds,
+        "acked_ops_per_s": stats(live_rates), "core_only_ops_per_s": stats(core_rates),
+        "query_rtt_ms": stats(q_rtt), "marginal_rtt_ms": stats(m_rtt),
+        "replay_ops_per_s": rep.n_inputs / rep.elapsed_s, "replay_inputs": rep.n_inputs,
+        "replay_identical": rep.identical, "live_ops_incl_setup": n_total,
+        "recording_bytes": rec.stat().st_size,
+    }
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0] if __doc__ else None)
+    p.add_argument("--samples", type=int, default=1000)
+    p.add_argument("--repeats", type=int, default=7)
+    p.add_argument("--quick", action="store_true", help="fewer operations (a smoke run)")
+    args = p.parse_args()
+    n, reps = args.samples, args.repeats
+    rng = np.random.default_rng(20260101)
+    small_steps = (10 if args.quick else 40) * reps // 3 + 1
+    big_steps = (4 if args.quick else 10) * reps
+    print(f"# numpy {np.__version__}, {os.cpu_count()} cores, N={n}, {reps} repeats",
+          flush=True)
+    results = []
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        s_setup, s_ops = small_map_ops(rng, n, small_steps)
+        results.append(run_config("small", n, s_setup, s_ops, reps, work, rng,
+                                  ("lm0", "lm3"), 100 if args.quick else 500))
+        b_setup, b_ops = frames200_ops(rng, n, big_steps)
+        results.append(run_config("frames200", n, b_setup, b_ops, reps, work, rng,
+                                  ("f150", "f190"), 50 if args.quick else 200))
+    for r in results:
+        print(json.dumps(r))
+    print()
+    hdr = (f"{'config':<10} {'frames':>6} {'acked ops/s':>16} {'core-only ops/s':>16} "
+           f"{'replay ops/s':>12} {'query ms (p90)':>15} {'marginal ms':>11}")
+    print(hdr)
+    for r in results:
+        a, c, q, m = (r["acked_ops_per_s"], r["core_only_ops_per_s"], r["query_rtt_ms"],
+                      r["marginal_rtt_ms"])
+        print(f"{r['config']:<10} {r['frames_at_end']:>6} "
+              f"{a['median']:>7.0f} [{a['p10']:.0f}-{a['p90']:.0f}] "
+              f"{c['median']:>7.0f} [{c['p10']:.0f}-{c['p90']:.0f}] "
+              f"{r['replay_ops_per_s']:>12.0f} {q['median']:>7.2f} ({q['p90']:.2f}) "
+              f"{m['median']:>11.2f}")
+    print("\nacked ops/s: median [p10-p90] over the repeats; each op is an acknowledged RPC "
+          "(update or remove), recorded and flushed before its ack. replay ops/s: the whole "
+          "file, setup included.")
+
+
+if __name__ == "__main__":
+    main()
