@@ -101,7 +101,8 @@ def serve(args: argparse.Namespace) -> int:
         while record.exists() and k < 1000:
             record = Path("recordings") / f"run-{stamp}-{k}.mcap"
             k += 1
-    maps = args.map or [wire.DEFAULT_MAP]
+    # restoring without --map serves the recording's maps (or "default" if it has none)
+    maps = args.map or ([] if args.restore else [wire.DEFAULT_MAP])
     opts = ServerOptions(
         maps=list(dict.fromkeys(maps)), prefix=args.prefix,
         map_options={"n_samples": args.samples, "method": args.method, "space": args.space,

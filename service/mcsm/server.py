@@ -121,7 +121,8 @@ class Server:
             for st in self.states.values():
                 if self.recorder is not None:
                     self.recorder.checkpoint(st.name, st.seq, st.digest(), "restore")
-        for name in o.maps:
+        maps = list(o.maps) or ([] if self.states else [wire.DEFAULT_MAP])
+        for name in maps:
             if name in self.states:
                 if self.states[name].map.options() != StochasticMap.from_options(
                         dict(o.map_options)).options():

@@ -188,6 +188,17 @@ def test_submap_export_import_between_maps(server: Daemon) -> None:
         assert cb.info().components.keys() == {join.component}
 
 
+def test_oversized_payload_is_dropped_by_zenoh_and_serving_goes_on(server: Daemon) -> None:
+    with MapClient(map="table", connect=server.endpoint, timeout_s=5) as c:
+        before = c.info()
+        # over the 8 MiB max_message_size: the transport drops it, no mcsm reply comes back
+        replies = list(c.session.get(c.keys.update, payload=b"\x00" * (9 * 1024 * 1024),
+                                     timeout=1.0))
+        assert all(r.ok is None for r in replies)
+        after = c.info()
+    assert (after.seq, after.digest) == (before.seq, before.digest)
+
+
 def test_client_errors_are_typed(server: Daemon) -> None:
     with MapClient(map="main", connect=server.endpoint, timeout_s=5) as c:
         with pytest.raises(UnknownFrame, match="ghost"):
