@@ -13,6 +13,8 @@ Configurations (N samples per AT, default 1000):
 * ``small``: a bounded robot map of at most 10 frames: per step one odometry update (new
   pose frame), one re-observation of one of 5 fixed landmark frames (case II loop closure),
   and one remove of the previous pose. Every one of them is an acknowledged operation.
+* ``odometry``: the same small map fed only odometry and removes (cheap core operations):
+  the ceiling of the ack pipeline itself.
 * ``frames200``: a 200-frame component (odometry chain), then odometry updates and loop
   closures at M ~ 200.
 """
@@ -96,6 +98,18 @@ def small_map_ops(rng: np.random.Generator, n: int, steps: int) -> tuple[list[Op
     for i in range(steps):
         ops.append(("update", f"pose{i}", f"pose{i + 1}", at(rng, n, [0.2, 0.0, 0.0], 0.01)))
         ops.append(("update", f"pose{i + 1}", f"lm{i % 5}", at(rng, n, [0.5, 4.0, 0.0])))
+        ops.append(("remove", f"pose{i}", "", None))
+    return setup, ops
+
+
+def odometry_ops(rng: np.random.Generator, n: int, steps: int) -> tuple[list[Op], list[Op]]:
+    """The cheapest stream for the core: odometry (new pose frame) + remove the old pose, on
+    a map of at most 7 frames. Shows the ceiling of the ack pipeline (transport, decode,
+    recording) when the core costs little."""
+    setup, _ = small_map_ops(rng, n, 0)
+    ops: list[Op] = []
+    for i in range(steps):
+        ops.append(("update", f"pose{i}", f"pose{i + 1}", at(rng, n, [0.2, 0.0, 0.0], 0.01)))
         ops.append(("remove", f"pose{i}", "", None))
     return setup, ops
 
@@ -216,7 +230,9 @@ def main() -> None:
     rng = np.random.default_rng(20260101)
     small_steps = (10 if args.quick else 40) * reps // 3 + 1
     big_steps = (4 if args.quick else 10) * reps
-    print(f"# numpy {np.__version__}, {os.cpu_count()} cores, N={n}, {reps} repeats",
+    load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+    print(f"# numpy {np.__version__}, {os.cpu_count()} cores, load average {load}, N={n}, "
+          f"{reps} repeats",
           flush=True)
     results = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -224,6 +240,9 @@ def main() -> None:
         s_setup, s_ops = small_map_ops(rng, n, small_steps)
         results.append(run_config("small", n, s_setup, s_ops, reps, work, rng,
                                   ("lm0", "lm3"), 100 if args.quick else 500))
+        o_setup, o_ops = odometry_ops(rng, n, (15 if args.quick else 60) * reps // 2)
+        results.append(run_config("odometry", n, o_setup, o_ops, reps, work, rng,
+                                  ("lm0", "lm3"), 50))
         b_setup, b_ops = frames200_ops(rng, n, big_steps)
         results.append(run_config("frames200", n, b_setup, b_ops, reps, work, rng,
                                   ("f150", "f190"), 50 if args.quick else 200))
