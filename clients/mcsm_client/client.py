@@ -273,6 +273,17 @@ class MapClient:
             except Timeout:
                 continue
 
+    def servers(self, timeout_s: float = 1.0) -> list[str]:
+        """Ids of the live servers serving this map (their liveliness tokens)."""
+        prefix = self.keys.alive("")
+        out = []
+        for reply in self.session.liveliness().get(self.keys.alive_any, timeout=timeout_s):
+            if reply.ok is not None:
+                key = str(reply.ok.key_expr)
+                if key.startswith(prefix):
+                    out.append(key[len(prefix):])
+        return sorted(out)
+
     # ---------------------------------------------------------------- events
     def watch(self, callback: Callable[[wire.Event], None] | None = None) -> EventStream:
         """Subscribe to ``<prefix>/<map>/events``.

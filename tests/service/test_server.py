@@ -188,6 +188,13 @@ def test_submap_export_import_between_maps(server: Daemon) -> None:
         assert cb.info().components.keys() == {join.component}
 
 
+def test_liveliness_token_names_the_server(server: Daemon) -> None:
+    with MapClient(map="ev", connect=server.endpoint) as c:
+        assert c.servers() == [c.info().server_id]
+    with MapClient(map="nosuchmap", connect=server.endpoint) as c:
+        assert c.servers(timeout_s=0.5) == []
+
+
 def test_oversized_payload_is_dropped_by_zenoh_and_serving_goes_on(server: Daemon) -> None:
     with MapClient(map="table", connect=server.endpoint, timeout_s=5) as c:
         before = c.info()
