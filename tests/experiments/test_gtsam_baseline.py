@@ -152,3 +152,22 @@ def test_point_factor_jacobians_match_finite_differences() -> None:
         num_point[:, d] = (factor.whitenedError(v) - whitened0) / eps
     np.testing.assert_allclose(a_pose, num_pose, atol=1e-4)
     np.testing.assert_allclose(a_point, num_point, atol=1e-4)
+
+
+def test_scenario_adapter_matches_the_ekf_when_headings_are_exact() -> None:
+    """σ_θ = 0: EKF-SLAM is the exact Kalman filter, so its landmark means are the optimum's."""
+    from mcsm_client.scenario import PaperScenarioConfig, generate_paper_scenario
+
+    from experiments.baselines.ekf_slam import run_ekf_on_scenario
+
+    config = PaperScenarioConfig(n_iterations=40, n_landmarks=30, p_observe=0.5)
+    scenario = generate_paper_scenario(config, np.random.default_rng(20120140))
+    ekf = run_ekf_on_scenario(scenario)
+    ids, means, covs = ekf.landmark_estimates()
+    problem = gs.problem_from_scenario(scenario)
+    graph, initial = gs.build_graph_2d(problem)
+    result = gs.batch_optimum(graph, initial)
+    got = gs.landmark_positions(result, ids)
+    np.testing.assert_allclose(np.stack([got[int(j)] for j in ids]), means, atol=1e-6)
+    got_cov = gs.landmark_covariances(graph, result, ids)
+    np.testing.assert_allclose(np.stack([got_cov[int(j)] for j in ids]), covs, atol=1e-8)
