@@ -66,6 +66,16 @@ def invert(x_a_b: Array) -> Array:
     return np.concatenate((t, q), axis=-1)
 
 
+def relative(x_r_a: Array, x_r_b: Array) -> Array:
+    """``x_r_a^R ⊕ x_r_b`` (the AT a→b from two edges of one star), in one step.
+
+    ``t = R(q_a)ᵀ (t_b − t_a)``, ``q = q_a⁻¹ q_b``; the query of PAPER §3, O(N).
+    """
+    q_a_inv = qconj(x_r_a[..., 3:])
+    t = qrot(q_a_inv, x_r_b[..., :3] - x_r_a[..., :3])
+    return np.concatenate((t, qmul(q_a_inv, x_r_b[..., 3:])), axis=-1)
+
+
 def canonicalize(x: Array, normalize: bool = True) -> Array:
     """Put every AT's quaternion samples on the hemisphere of its own mean (sign flips only,
     exact), after renormalising them unless ``normalize`` is False.

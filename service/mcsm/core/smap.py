@@ -40,6 +40,7 @@ from mcsm.core.at import (
     invert,
     mean_and_cov,
     merge_correlated,
+    relative,
     to_space,
 )
 from mcsm.core.quat import qconj, qrot
@@ -101,6 +102,10 @@ class _Component:
     frames: list[str]
     is_point: npt.NDArray[np.bool_]
     edges: Array  # (M, N, 7), edges[0] is the exact identity
+    index: dict[str, int] = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self.index = {f: i for i, f in enumerate(self.frames)}
 
     @property
     def root(self) -> str:
@@ -194,7 +199,7 @@ class StochasticMap:
 
     def is_point(self, frame: str) -> bool:
         c = self._comp_of(frame)
-        return bool(c.is_point[c.frames.index(frame)])
+        return bool(c.is_point[c.index[frame]])
 
     def edges(self, frame: str) -> Array:
         """A read-only view of the ``(M, N, 7)`` edge array of ``frame``'s component."""
@@ -222,7 +227,7 @@ class StochasticMap:
             return c.edges[ib].copy()
         if ib == 0:
             return invert(c.edges[ia])
-        return compound(invert(c.edges[ia]), c.edges[ib])
+        return relative(c.edges[ia], c.edges[ib])
 
     def marginal(self, a: str, b: str) -> tuple[Array, Array]:
         """Mean 7-vector and 6×6 tangent covariance of a→b (see :func:`mean_and_cov`)."""
@@ -278,14 +283,14 @@ class StochasticMap:
         """
         cid = self._cid(frame)
         c = self._comps[cid]
-        i = c.frames.index(frame)
+        i = c.index[frame]
         if len(c.frames) == 1:
             self._forget_component(cid)
             return RemoveResult(None, (frame,))
         if i == 0:
             full = [k for k in range(1, len(c.frames)) if not c.is_point[k]]
             c = self._rerooted(c, full[0] if full else 1)
-            i = c.frames.index(frame)
+            i = c.index[frame]
         keep = np.ones(len(c.frames), dtype=bool)
         keep[i] = False
         new = _Component([f for f, k in zip(c.frames, keep, strict=True) if k],
@@ -353,7 +358,7 @@ class StochasticMap:
         if ca != cb:
             raise NotRelated(a, b)
         c = self._comps[ca]
-        return c, c.frames.index(a), c.frames.index(b)
+        return c, c.index[a], c.index[b]
 
     def _install(self, comp: _Component, new_frames: list[str], cid: int | None = None) -> int:
         if cid is None:
@@ -401,7 +406,7 @@ class StochasticMap:
         """Add ``new`` to ``known``'s component: root→new = root→known ⊕ X (or ⊕ X^R)."""
         cid = self._cid(known)
         c = self._comps[cid]
-        e_known = c.edges[c.frames.index(known)]
+        e_known = c.edges[c.index[known]]
         if point:
             assert x is not None
             leaf = self._point_edge(e_known, x)
@@ -462,8 +467,8 @@ class StochasticMap:
         cid = self._where[a]
         c = self._comps[cid]
         if c.frames[0] != a:
-            c = self._rerooted(c, c.frames.index(a))
-        ib = c.frames.index(b)
+            c = self._rerooted(c, c.index[a])
+        ib = c.index[b]
         g = c.edges[ib]
         if point:
             g_new = g.copy()
@@ -491,7 +496,7 @@ class StochasticMap:
         """One ensemble-Kalman analysis of the whole component (module docstring)."""
         cid = self._where[a]
         c = self._comps[cid]
-        ia, ib = c.frames.index(a), c.frames.index(b)
+        ia, ib = c.index[a], c.index[b]
         y, z = self._predict(c.edges[ia], c.edges[ib], x, point)
         n = self.n_samples
         y_mean = y.mean(axis=0)
@@ -541,7 +546,7 @@ class StochasticMap:
         # unchanged up to rounding; pin them exactly so they stay definitions, not estimates.
         edges[0] = identity(n)
         self._pin_points(edges, c.is_point)
-        self._install(_Component(c.frames, c.is_point, edges), new_frames=[], cid=cid)
+        c.edges = edges  # the only mutation, after every check
         return UpdateResult("loop_closure", c.root, ())
 
     def _predict(self, e_a: Array, e_b: Array, x: Array, point: bool) -> tuple[Array, Array]:
