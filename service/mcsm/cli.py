@@ -127,8 +127,7 @@ def serve(args: argparse.Namespace) -> int:
         log.info("signal %d: shutting down", signum)
         stop.set()
 
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+    old_handlers = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     server = Server(session, opts, progress=progress_bar() if args.restore else None)
     try:
         try:
@@ -148,6 +147,8 @@ def serve(args: argparse.Namespace) -> int:
     finally:
         server.close()
         session.close()
+        for sig, handler in old_handlers.items():
+            signal.signal(sig, handler)
 
 
 # ------------------------------------------------------------------------------------ replay

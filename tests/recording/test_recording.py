@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import socket
 from pathlib import Path
 
 import numpy as np
@@ -140,6 +141,20 @@ def test_divergence_is_reported_first_and_exits_1(
     assert mcsm_main(["replay", str(bad), "--no-progress"]) == 1
     assert "DIVERGED" in capsys.readouterr().out
     assert mcsm_main(["replay", str(src), "--no-progress"]) == 0
+
+
+def test_serve_refuses_to_restore_a_diverging_recording(tmp_path: Path,
+                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    src, bad = tmp_path / "good.mcap", tmp_path / "bad.mcap"
+    record_session(src, 8, 12, seed=5506)
+    _rewrite(src, bad, "digest")
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        ep = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    code = mcsm_main(["serve", "--listen", ep, "--restore", str(bad), "--record",
+                      str(tmp_path / "new.mcap"), "--log-level", "ERROR"])
+    assert code == 2
+    assert "replay diverged" in capsys.readouterr().err
 
 
 def test_truncated_at_every_cut_recovers_complete_records(tmp_path: Path) -> None:
