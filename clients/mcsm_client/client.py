@@ -38,7 +38,7 @@ import numpy as np
 import numpy.typing as npt
 import zenoh
 from mcsm import wire
-from mcsm.errors import BadMessage, McsmError, Timeout
+from mcsm.errors import BadMessage, LimitExceeded, McsmError, Timeout
 
 from mcsm_client.connect import ZenohConfigLike, client_config
 
@@ -127,6 +127,9 @@ class MapClient:
         """
         if self._closed:
             raise McsmError("the client is closed")
+        if len(payload) > wire.MAX_PAYLOAD_BYTES:
+            # Zenoh would drop it silently (the caller would only see a Timeout)
+            raise LimitExceeded("request bytes", len(payload), wire.MAX_PAYLOAD_BYTES)
         t = self.timeout_s if timeout_s is None else float(timeout_s)
         attempts = self.retries + 1
         for attempt in range(attempts):

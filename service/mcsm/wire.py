@@ -45,8 +45,9 @@ VERSION = 1
 DEFAULT_PREFIX = "mcsm"
 DEFAULT_MAP = "default"
 
-MAX_PAYLOAD_BYTES = 8 * 1024 * 1024
-"""Largest request the server decodes (it also caps Zenoh's ``max_message_size``)."""
+MAX_PAYLOAD_BYTES = 8 * 1024 * 1024 - 64 * 1024
+"""Largest request the server decodes and a client sends: 64 KiB under the server's Zenoh
+``max_message_size`` (8 MiB), so an accepted payload always fits in one Zenoh message."""
 MAX_REPLY_BYTES = 1024 * 1024 * 1024
 """Largest reply a client decodes (submap exports of big maps are large)."""
 MAX_SAMPLES = 100_000

@@ -101,6 +101,20 @@ def test_round_trip_and_typed_errors(served: tuple[str, Server]) -> None:
         assert c2.info().frames == () and c2.info().seq == 0
 
 
+def test_oversized_request_is_refused_before_sending(served: tuple[str, Server]) -> None:
+    ep, _ = served
+    m = wire.MAX_PAYLOAD_BYTES // (N * 56) + 1  # frames in a submap just over the limit
+    edges = np.zeros((m, N, 7))
+    edges[..., 3] = 1.0
+    sub = wire.SubmapData("g0", tuple(f"g{i}" for i in range(m)), (False,) * m, edges)
+    with MapClient(connect=ep, timeout_s=5) as c:
+        t0 = time.monotonic()
+        with pytest.raises(LimitExceeded, match="request bytes"):
+            c.import_submap(sub)
+        assert time.monotonic() - t0 < 1.0
+        assert c.info().seq == 0
+
+
 def test_open_without_server_times_out_quickly() -> None:
     ep = free_endpoint()  # nothing listens here
     t0 = time.monotonic()
