@@ -2,12 +2,35 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
 import pytest
 from mcsm_client.datasets import Dataset
+from mcsm_client.demo import ServerProcess
+
+#: N of the maps served to the client tests.
+SERVER_N = 200
+
+
+@pytest.fixture(scope="session")
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerProcess]:
+    """``mcsm serve`` (real subprocess, free loopback port, N = 200) with several maps."""
+    d = tmp_path_factory.mktemp("srv")
+    with ServerProcess(d / "a.mcap", n_samples=SERVER_N,
+                       maps=("default", "sim", "cli", "play", "robots", "examples")) as srv:
+        yield srv
+    assert srv.returncode == 0, srv.log_tail()
+
+
+@pytest.fixture(scope="session")
+def server_b(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerProcess]:
+    """A second server (robot B's), N = 200."""
+    d = tmp_path_factory.mktemp("srv_b")
+    with ServerProcess(d / "b.mcap", n_samples=SERVER_N, maps=("robots", "examples")) as srv:
+        yield srv
+    assert srv.returncode == 0, srv.log_tail()
 
 
 def _point_error(z: np.ndarray):  # type: ignore[no-untyped-def]
