@@ -113,6 +113,9 @@ class Server:
             rep = replay(o.restore, sink=self.recorder, progress=self._progress,
                          lru_size=o.lru_size, server_id=self.server_id)
             if rep.divergence is not None:
+                if self.recorder is not None:  # it only holds a copy of the old file's prefix
+                    self.recorder.close()
+                    self.recorder.path.unlink(missing_ok=True)
                 raise RecordingError(str(o.restore), f"replay diverged: {rep.divergence}")
             self.states.update(rep.states)
             log.info("restored %d inputs of %d map(s) from %s (%s)", rep.n_inputs,

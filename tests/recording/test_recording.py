@@ -155,6 +155,7 @@ def test_serve_refuses_to_restore_a_diverging_recording(tmp_path: Path,
                       str(tmp_path / "new.mcap"), "--log-level", "ERROR"])
     assert code == 2
     assert "replay diverged" in capsys.readouterr().err
+    assert not (tmp_path / "new.mcap").exists()  # no half-restored recording left behind
 
 
 def test_truncated_at_every_cut_recovers_complete_records(tmp_path: Path) -> None:
