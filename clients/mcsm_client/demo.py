@@ -158,16 +158,16 @@ class ServerProcess:
 
 @dataclass(frozen=True)
 class DemoConfig:
-    """Knobs of ``make run`` (defaults: one revolution at N = 400, a few minutes here)."""
+    """Knobs of ``make run`` (defaults: one revolution at N = 1000, about a minute here)."""
 
-    n_samples: int = 400
+    n_samples: int = 1000
     n_iterations: int = 340
     score_every: int = 10
     sigma_theta_deg: float = 0.0
     seed: int = 2012
     out_dir: Path | None = None
     multirobot: bool = True
-    multirobot_samples: int = 200
+    multirobot_samples: int = 500
 
 
 @dataclass
@@ -272,13 +272,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=DemoConfig.seed)
     p.add_argument("--out", type=Path, default=None,
                    help="output folder (default recordings/run-<UTC time>/)")
+    p.add_argument("--robot-samples", type=int, default=DemoConfig.multirobot_samples,
+                   metavar="N", help="samples per AT of the multi-robot maps (default "
+                                     f"{DemoConfig.multirobot_samples})")
     p.add_argument("--no-multirobot", action="store_true", help="skip the multi-robot part")
     args = p.parse_args(argv)
-    if args.samples < 2 or args.iterations < 1:
-        p.error("--samples must be >= 2 and --iterations >= 1")
+    if args.samples < 2 or args.robot_samples < 2 or args.iterations < 1:
+        p.error("--samples and --robot-samples must be >= 2, --iterations >= 1")
     cfg = DemoConfig(n_samples=args.samples, n_iterations=args.iterations,
                      sigma_theta_deg=args.sigma_theta_deg, seed=args.seed, out_dir=args.out,
-                     multirobot=not args.no_multirobot)
+                     multirobot=not args.no_multirobot, multirobot_samples=args.robot_samples)
     try:
         run_demo(cfg)
     except KeyboardInterrupt:
