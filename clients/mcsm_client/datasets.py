@@ -118,7 +118,8 @@ class Dataset:
     skipped : dict of str to int
         Count of lines skipped per unknown or ignored tag (``EQUIV``, ``BR``, ...).
     noise : str
-        The noise convention the edges were read with.
+        The noise conventions the records were read with (``"covariance"``,
+        ``"information"``, ``"sqrt_information"``, ``"toro_information"``; joined by ``+``).
     """
 
     name: str
@@ -244,6 +245,7 @@ class _Builder:
     def __init__(self, name: str, noise: str) -> None:
         self.ds = Dataset(name=name, dim=0, noise=noise)
         self.seen_poses: set[int] = set()
+        self.used: set[str] = set()
 
     def set_dim(self, dim: int, line: int) -> None:
         if self.ds.dim == 0:
@@ -358,6 +360,8 @@ def parse_dataset(
             raise DatasetError(name, lineno, f"{tag}: {exc}") from None
     if b.ds.dim == 0:
         b.ds.dim = 2
+    if b.used:
+        b.ds.noise = "+".join(sorted(b.used))
     return b.ds
 
 
@@ -379,22 +383,27 @@ def _parse_record(b: _Builder, tag: str, rest: list[str], lineno: int, edge_nois
         v = _numbers(name, lineno, rest[2:], 9)
         if tag == "ODOMETRY":
             cov = _noise_to_cov(v[3:], 3, "covariance")
+            b.used.add("covariance")
         elif tag == "EDGE2":
             cov = _toro_info_to_cov(v[3:])
+            b.used.add("toro_information")
         else:
             cov = _noise_to_cov(v[3:], 3, edge_noise)
+            b.used.add(edge_noise)
         b.pose_edge(i, j, v[:3].copy(), cov, lineno)
     elif tag in ("LANDMARK2", "LANDMARK"):
         b.set_dim(2, lineno)
         i, j = _ids(name, lineno, rest, 2)
         v = _numbers(name, lineno, rest[2:], 5)
         fmt: NoiseFormat = "covariance" if tag == "LANDMARK" else edge_noise
+        b.used.add(fmt)
         b.point_edge(i, j, v[:2].copy(), _noise_to_cov(v[2:], 2, fmt), lineno)
     elif tag == "EDGE_SE3:QUAT":
         b.set_dim(3, lineno)
         i, j = _ids(name, lineno, rest, 2)
         v = _numbers(name, lineno, rest[2:], 28)
         mean = np.concatenate([v[:3], _quat_xyzw_to_wxyz(v[3:7])])
+        b.used.add(edge_noise)
         b.pose_edge(i, j, mean, _noise_to_cov(v[7:], 6, edge_noise), lineno)
     else:
         b.skip(tag)

@@ -98,6 +98,7 @@ EQUIV 2 0
     # later pose first, as in Olson's files: the edge measures pose 0 in pose 1's frame
     assert (ds.constraints[0].source, ds.constraints[0].target) == (1, 0)
     assert ds.skipped == {"EQUIV": 1}
+    assert ds.noise == "toro_information"
 
 
 def test_victoria_park_line_format_covariances_and_shared_ids() -> None:
@@ -109,6 +110,7 @@ LANDMARK 3 2 11.3 -3.2 0.4 0 0.4
     ds = parse_dataset(text.splitlines())
     np.testing.assert_allclose(ds.constraints[0].cov, np.diag([1e-4, 4e-6, 4e-6]))
     np.testing.assert_allclose(ds.constraints[1].cov, [[0.4, 0.1], [0.1, 0.5]])
+    assert ds.noise == "covariance"
     assert [c.kind for c in ds.constraints] == ["odometry", "landmark", "odometry", "landmark"]
     # poses skip the id the landmark took
     assert ds.pose_ids() == [0, 1, 3] and ds.landmark_ids() == [2]
