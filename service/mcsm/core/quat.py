@@ -16,8 +16,38 @@ Array = npt.NDArray[np.float64]
 _SMALL_ANGLE = 1e-6
 
 
+def _one_set_over_many(small: Array, big: Array) -> bool:
+    """True when ``small`` is one sample set ``(..1.., N, k)`` broadcast over a stack
+    ``(M.., N, k')`` of at least 16 of them."""
+    if small.ndim < 2 or big.ndim < 3:
+        return False
+    n = small.shape[-2]
+    return small.size == n * small.shape[-1] and big.shape[-2] == n and \
+        big.size >= 16 * n * big.shape[-1]
+
+
+# qmul(p, q) = L(p) q with L(p)[i, j] = _L_SIGN[i, j] * p[_L_INDEX[i, j]]
+_L_INDEX = np.array([[0, 1, 2, 3], [1, 0, 3, 2], [2, 3, 0, 1], [3, 2, 1, 0]])
+_L_SIGN = np.array([[1, -1, -1, -1], [1, 1, -1, 1], [1, 1, 1, -1], [1, -1, 1, 1]], dtype=float)
+
+
 def qmul(p: Array, q: Array) -> Array:
-    """Hamilton product ``p q`` of ``(..., 4)`` arrays (broadcasting)."""
+    """Hamilton product ``p q`` of ``(..., 4)`` arrays (broadcasting).
+
+    When ``p`` is broadcast over a much larger ``q`` (one AT applied to a whole component),
+    the product is one contraction with the precomputed matrices ``L(p)``: far fewer passes
+    over the large array than component-wise arithmetic on its strided columns.
+    """
+    if p.ndim >= 2 and p.shape[-2] == 1 and q.ndim == p.ndim and q.shape[-2] >= 16 and \
+            p.shape[:-2] == q.shape[:-2]:
+        # one quaternion per sample set (a per-edge reference) times all its samples
+        left = p.reshape(-1, 4)[:, _L_INDEX] * _L_SIGN  # (M, 4, 4)
+        return np.einsum("mij,mnj->mni", left, q.reshape(left.shape[0], -1, 4),
+                         optimize=True).reshape(q.shape)
+    if _one_set_over_many(p, q):
+        left = p.reshape(-1, 4)[:, _L_INDEX] * _L_SIGN  # (N, 4, 4)
+        return np.einsum("nij,mnj->mni", left, q.reshape(-1, p.shape[-2], 4),
+                         optimize=True).reshape(q.shape)
     pw, px, py, pz = p[..., 0], p[..., 1], p[..., 2], p[..., 3]
     qw, qx, qy, qz = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     return np.stack(
@@ -38,12 +68,42 @@ def qconj(q: Array) -> Array:
     return out
 
 
+def rotation_matrix(q: Array) -> Array:
+    """Rotation matrices ``(..., 3, 3)`` of unit quaternions ``(..., 4)``."""
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    r = np.empty(q.shape[:-1] + (3, 3))
+    r[..., 0, 0] = 1 - 2 * (y * y + z * z)
+    r[..., 0, 1] = 2 * (x * y - w * z)
+    r[..., 0, 2] = 2 * (x * z + w * y)
+    r[..., 1, 0] = 2 * (x * y + w * z)
+    r[..., 1, 1] = 1 - 2 * (x * x + z * z)
+    r[..., 1, 2] = 2 * (y * z - w * x)
+    r[..., 2, 0] = 2 * (x * z - w * y)
+    r[..., 2, 1] = 2 * (y * z + w * x)
+    r[..., 2, 2] = 1 - 2 * (x * x + y * y)
+    return r
+
+
+def _cross(a: Array, b: Array) -> Array:
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack((a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0), axis=-1)
+
+
 def qrot(q: Array, v: Array) -> Array:
-    """Rotate vectors ``v (..., 3)`` by unit quaternions ``q (..., 4)``: ``R(q) v``."""
+    """Rotate vectors ``v (..., 3)`` by unit quaternions ``q (..., 4)``: ``R(q) v``.
+
+    A ``q`` broadcast over a much larger ``v`` goes through its rotation matrices (one
+    contraction over the large array), as in :func:`qmul`.
+    """
+    if _one_set_over_many(q, v):
+        r = rotation_matrix(q.reshape(-1, 4))  # (N, 3, 3)
+        return np.einsum("nij,mnj->mni", r, v.reshape(-1, q.shape[-2], 3),
+                         optimize=True).reshape(v.shape)
     w = q[..., :1]
     u = q[..., 1:]
-    t = 2.0 * np.cross(u, v)
-    return v + w * t + np.cross(u, t)
+    t = 2.0 * _cross(u, v)
+    return v + w * t + _cross(u, t)
 
 
 def qnormalize(q: Array) -> Array:
@@ -54,20 +114,19 @@ def qnormalize(q: Array) -> Array:
 
 def align_hemisphere(q: Array, ref: Array) -> Array:
     """Flip each quaternion onto the hemisphere of ``ref`` (``q·ref >= 0``); broadcasting."""
-    dot = np.sum(q * ref, axis=-1, keepdims=True)
-    return np.where(dot < 0.0, -q, q)
+    q, ref = np.broadcast_arrays(q, ref)
+    sign = np.where(np.einsum("...k,...k->...", q, ref) < 0.0, -1.0, 1.0)
+    return q * sign[..., None]
 
 
 def mean_rotation(q: Array) -> Array:
     """Chordal mean over the sample axis (-2) of ``(..., N, 4)``: aligned, averaged, normalised.
 
-    Samples are first put on the hemisphere of the first sample, then on that of the first
-    mean, so the result does not depend on the signs the samples came with.
+    Samples are put on the hemisphere of the first sample first, so the result does not depend
+    on the signs the samples came with (for spreads below 90° around the mean).
     """
-    first = q[..., :1, :]
-    m = qnormalize(np.mean(align_hemisphere(q, first), axis=-2, keepdims=True))
-    m = qnormalize(np.mean(align_hemisphere(q, m), axis=-2, keepdims=True))
-    return m[..., 0, :]
+    m = np.mean(align_hemisphere(q, q[..., :1, :]), axis=-2)
+    return qnormalize(m)
 
 
 def qlog(q: Array) -> Array:

@@ -447,13 +447,13 @@ class StochasticMap:
         self._install(comp, new_frames=[], cid=cid1)
         return UpdateResult("join", c1.root, ())
 
-    def _rerooted(self, c: _Component, k: int) -> _Component:
+    def _rerooted(self, c: _Component, k: int, canonical: bool = True) -> _Component:
         """The component re-rooted at index k: each edge becomes (r→k)^R ⊕ (r→l) (PAPER Fig. 3a)."""
         x_k_r = invert(c.edges[k])
         edges = compound(x_k_r[None], c.edges)
         edges[k] = identity(self.n_samples)
         order = [k] + [i for i in range(len(c.frames)) if i != k]
-        edges = canonicalize(edges[order])
+        edges = canonicalize(edges[order]) if canonical else edges[order]
         is_point = c.is_point[order]
         self._pin_points(edges, is_point)
         edges[0] = identity(self.n_samples)
@@ -467,7 +467,9 @@ class StochasticMap:
         cid = self._where[a]
         c = self._comps[cid]
         if c.frames[0] != a:
-            c = self._rerooted(c, c.index[a])
+            # no canonicalisation here: every re-rooted edge goes through a merge, whose
+            # output lies on the hemisphere of its reference rotation
+            c = self._rerooted(c, c.index[a], canonical=False)
         ib = c.index[b]
         g = c.edges[ib]
         if point:
@@ -483,7 +485,6 @@ class StochasticMap:
             e_j = c.edges[others]
             edges[others] = merge_correlated(e_j, compound(shift[None], e_j), self.space)
         edges[ib] = g_new
-        edges = canonicalize(edges)
         self._pin_points(edges, c.is_point)
         edges[0] = identity(self.n_samples)
         self._check_finite(edges, "the loop closure")
