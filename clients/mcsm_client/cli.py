@@ -149,6 +149,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="robot B's own server (default: B's component in the same map)")
     s.add_argument("--map-b", default=None, metavar="NAME",
                    help="robot B's own map on the same server")
+    s.add_argument("--landmarks", type=int, default=200, help="landmarks in the world")
     s.add_argument("--json", action="store_true")
     _add_in_process(s)
     _add_common(s)
@@ -410,8 +411,10 @@ def cmd_multirobot(args: argparse.Namespace) -> int:
 
     if args.connect_b and args.map_b and args.in_process is not None:
         raise UsageError("--in-process cannot be combined with --connect-b/--map-b")
+    if args.landmarks < 1:
+        raise UsageError("--landmarks must be >= 1")
     rng = np.random.default_rng(args.seed)
-    cfg = MultiRobotConfig()
+    cfg = MultiRobotConfig(n_landmarks=args.landmarks)
     log = None if args.json else (lambda s: print(s, flush=True))
     if args.in_process is not None:
         from mcsm import StochasticMap

@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -142,3 +143,60 @@ def test_demo_end_to_end_small(tmp_path: Path) -> None:
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     assert summary["sim"]["final"]["iteration"] == 20
     assert summary["server"]["seq"] > 20
+
+
+def test_cli_watch_prints_events(server: ServerProcess) -> None:
+    """``watch --count 2`` exits after two events; updates are sent until it has seen them
+    (polling with a deadline: the subscription's start is not observable from outside)."""
+    proc = subprocess.Popen([sys.executable, "-m", "mcsm_client.cli", "watch", "--count", "2",
+                             "--json", "--duration-s", "60", "--connect", server.endpoint,
+                             "--map", "cli"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    try:
+        x = np.zeros((N, 7))
+        x[:, 3] = 1.0
+        x[:, 0] = np.linspace(0.9, 1.1, N)
+        deadline = time.monotonic() + 60.0
+        k = 0
+        with MapClient(map="cli", connect=server.endpoint, timeout_s=20.0) as c:
+            while proc.poll() is None and time.monotonic() < deadline:
+                c.update(f"watch{k}", f"watch{k + 1}", x)
+                k += 1
+                try:
+                    proc.wait(timeout=0.5)
+                except subprocess.TimeoutExpired:
+                    pass
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=10)
+    assert proc.returncode == 0, err
+    events = [json.loads(line) for line in out.splitlines()]
+    assert len(events) == 2
+    assert events[1]["seq"] > events[0]["seq"]
+    assert events[0]["op"] == "update"
+
+
+def test_cli_in_process_sim_multirobot_and_zenoh_config(
+        server: ServerProcess, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    pytest.importorskip("matplotlib")
+    code, out, err = _cli(capsys, "sim", "--in-process", "50", "--iterations", "20",
+                          "--score-every", "10", "--csv", str(tmp_path / "s.csv"), "--png",
+                          str(tmp_path / "s.png"), "--json")
+    assert code == 0, err
+    assert json.loads(out)["final"]["iteration"] == 20
+    assert (tmp_path / "s.csv").exists() and (tmp_path / "s.png").stat().st_size > 1000
+    code, out, err = _cli(capsys, "multirobot", "--in-process", "50", "--landmarks", "40",
+                          "--json")
+    assert code == 0, err
+    assert json.loads(out)["join"] == "join"
+    # a Zenoh JSON5 file instead of --connect
+    conf = tmp_path / "client.json5"
+    conf.write_text(json.dumps({
+        "mode": "client", "connect": {"endpoints": [server.endpoint]},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}}}))
+    code, out, err = _cli(capsys, "info", "--zenoh-config", str(conf), "--map", "cli",
+                          "--json")
+    assert code == 0, err
+    assert json.loads(out)["n_samples"] == N
