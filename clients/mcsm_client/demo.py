@@ -241,7 +241,6 @@ def run_demo(config: DemoConfig, *, log: Any = print) -> DemoReport:
                 "cross_loop_closures": mr.cross_loop_closures}
             report.files += [srv_a.record, srv_b.record]
     report.files.insert(0, server.record)
-    (out / "summary.json").write_text(json.dumps(report.figures, indent=2, default=str))
     report.files.append(out / "summary.json")
     log("")
     log("accuracy summary")
@@ -251,10 +250,14 @@ def run_demo(config: DemoConfig, *, log: Any = print) -> DemoReport:
     if config.multirobot:
         for s in mr.scores[-2:]:
             log(f"  multi-robot {s.stage}: RMS {s.rms_m:.3f} m, NEES/dof {s.nees_per_dof:.2f}")
-    log(f"server stopped (exit code {server.returncode}); files in {out}/:")
+    codes = [server.returncode] + ([srv_a.returncode, srv_b.returncode]
+                                   if config.multirobot else [])
+    report.figures["server_exit_codes"] = codes
+    log(f"servers stopped with SIGINT (exit codes {codes}); files in {out}/:")
     for p in report.files:
         log(f"  {p}")
-    log(f"replay a recording: .venv/bin/mcsm replay {server.record}")
+    log(f"check a recording replays bit-identically: .venv/bin/mcsm replay {server.record}")
+    (out / "summary.json").write_text(json.dumps(report.figures, indent=2, default=str))
     return report
 
 

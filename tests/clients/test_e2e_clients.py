@@ -139,10 +139,11 @@ def test_demo_end_to_end_small(tmp_path: Path) -> None:
     assert {"server.mcap", "sim.csv", "summary.json"} <= names
     assert all(p.exists() for p in rep.files)
     assert any("accuracy summary" in s for s in lines)
-    assert any("exit code 0" in s for s in lines)
+    assert any("exit codes [0]" in s for s in lines)
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     assert summary["sim"]["final"]["iteration"] == 20
     assert summary["server"]["seq"] > 20
+    assert summary["server_exit_codes"] == [0]
 
 
 def test_cli_watch_prints_events(server: ServerProcess) -> None:
