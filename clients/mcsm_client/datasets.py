@@ -19,6 +19,12 @@ iSAM-style files that contain ``LANDMARK2`` (``victoriaPark_reduced_1k.g2o``,
 (information ``RᵀR``) on both ``EDGE_SE2`` and ``LANDMARK2``, not g2o's information matrix;
 ``read_g2o(noise="auto")`` detects them by that tag.
 
+``EDGE_SE3:QUAT`` information is read over the rotation *vector* (GTSAM's reading). g2o itself
+defines the rotation error as the quaternion's vector part (about half the rotation vector),
+which would make the rotation information four times smaller; on ``pose3example-grid.txt`` the
+GTSAM reading gives chi2/dof 0.81 at the optimum and the strict g2o reading 0.30, so the files
+shipped with GTSAM follow GTSAM's. TORO 3D (``EDGE3``/``VERTEX3``) is not read.
+
 Measurement convention everywhere: an edge ``i j z`` measures pose (or point) ``j`` in the frame
 of pose ``i``, ``z = x_i⁻¹ x_j`` (GTSAM's ``BetweenFactor(i, j, z)``). A pose covariance is over
 the tangent vector ``[t, r]`` of a *right* (body-frame) perturbation of the measurement:
