@@ -22,7 +22,6 @@ import time
 import tracemalloc
 
 import numpy as np
-
 from mcsm import StochasticMap
 from mcsm.core.quat import qexp
 

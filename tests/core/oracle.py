@@ -8,7 +8,6 @@ form). The map must reach it as N grows (PAPER §3; issue: joint update converge
 from __future__ import annotations
 
 import numpy as np
-
 from mcsm import StochasticMap
 
 N_FRAMES = 10

@@ -1,9 +1,8 @@
-"""PAPER §4 (§6 of the paper), short: the joint update's landmark error falls when the loop closes."""
+"""PAPER §4 (the paper's §6), short: the joint update's landmark error falls after loop closure."""
 
 from __future__ import annotations
 
 import numpy as np
-
 from mcsm import StochasticMap
 from mcsm_client.scenario import (
     PaperScenarioConfig,
