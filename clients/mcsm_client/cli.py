@@ -236,6 +236,7 @@ class _Progress:
 # ----------------------------------------------------------------------------- commands
 
 def cmd_info(args: argparse.Namespace) -> int:
+    """``info``: print the map's N, frames, components, sequence number and digest."""
     with _client(args) as c:
         info = c.info()
     obj = {"map": info.map, "n_samples": info.n_samples, "options": info.options,
@@ -255,6 +256,7 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def cmd_update(args: argparse.Namespace) -> int:
+    """``update``: draw N samples from the given mean and noise and apply them."""
     from mcsm_client.sampling import sample_planar, sample_point, sample_pose
 
     as_sigma = args.sigma is not None
@@ -285,6 +287,7 @@ def cmd_update(args: argparse.Namespace) -> int:
 
 
 def cmd_query(args: argparse.Namespace) -> int:
+    """``query``: print the marginal of A->B; optionally save its samples."""
     with _client(args) as c:
         mean, cov = c.marginal(args.a, args.b)
         if args.samples_out is not None:
@@ -304,6 +307,7 @@ def cmd_query(args: argparse.Namespace) -> int:
 
 
 def cmd_remove(args: argparse.Namespace) -> int:
+    """``remove``: remove one frame."""
     with _client(args) as c:
         ack = c.remove(args.frame)
     _print(args, _ack_dict(ack), _ack_text(ack))
@@ -311,6 +315,7 @@ def cmd_remove(args: argparse.Namespace) -> int:
 
 
 def cmd_watch(args: argparse.Namespace) -> int:
+    """``watch``: print events until ``--count``/``--duration-s`` or Ctrl-C."""
     deadline = None if args.duration_s is None else time.monotonic() + args.duration_s
     seen = 0
     with _client(args) as c, c.watch() as events:
@@ -343,6 +348,7 @@ def _map_for(args: argparse.Namespace) -> tuple[Any, Any]:
 
 
 def cmd_play(args: argparse.Namespace) -> int:
+    """``play``: stream a dataset; exit 1 if the map refused any constraint."""
     from mcsm_client.datasets import DatasetError, read_dataset
     from mcsm_client.players import play
 
@@ -375,6 +381,7 @@ def cmd_play(args: argparse.Namespace) -> int:
 
 
 def cmd_sim(args: argparse.Namespace) -> int:
+    """``sim``: the paper's §6 simulation with per-iteration scores."""
     from mcsm_client.sim import SimConfig, plot_results, run_sim
 
     if args.iterations < 1 or args.score_every < 1 or args.landmarks < 1:
@@ -407,6 +414,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
 
 def cmd_multirobot(args: argparse.Namespace) -> int:
+    """``multirobot``: the two-robot join and cross loop closure demo."""
     from mcsm_client.multirobot import MultiRobotConfig, run_multirobot
 
     if args.connect_b and args.map_b and args.in_process is not None:
