@@ -26,7 +26,8 @@ from mcsm.recording import (
 )
 
 RECORDINGS = Path(__file__).resolve().parents[2] / "recordings"
-SHIPPED = sorted(RECORDINGS.glob("*.mcap"))
+# shipped recordings have a .digest beside them; run-*.mcap from local `mcsm serve` runs do not
+SHIPPED = sorted(p for p in RECORDINGS.glob("*.mcap") if p.with_suffix(".digest").exists())
 
 
 def at(rng: np.random.Generator, n: int, t: list[float]) -> np.ndarray:
@@ -228,7 +229,6 @@ def _digest_file(mcap: Path) -> dict[str, tuple[int, str]]:
 
 def test_shipped_recordings_exist() -> None:
     assert {p.stem for p in SHIPPED} >= {"loop-small", "two-maps", "killed"}
-    assert all(p.with_suffix(".digest").exists() for p in SHIPPED)
 
 
 @pytest.mark.parametrize("mcap", SHIPPED, ids=[p.stem for p in SHIPPED])
