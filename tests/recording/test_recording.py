@@ -234,9 +234,11 @@ def test_shipped_recordings_exist() -> None:
 @pytest.mark.parametrize("mcap", SHIPPED, ids=[p.stem for p in SHIPPED])
 def test_shipped_recording_replays_to_its_digest(mcap: Path) -> None:
     rep = replay(mcap)
-    assert rep.identical, rep.divergence
+    hint = ("if the core's arithmetic changed on purpose, regenerate the recordings: "
+            ".venv/bin/python tests/recording/make_recordings.py")
+    assert rep.identical, f"{rep.divergence}; {hint}"
     got = {name: (s.seq, s.map.state_digest()) for name, s in rep.states.items()}
-    assert got == _digest_file(mcap)
+    assert got == _digest_file(mcap), hint
     assert rep.complete == (mcap.stem != "killed")
 
 
