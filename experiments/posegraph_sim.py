@@ -264,7 +264,7 @@ class PoseGraph:
 
 
 def sample_measurement(
-    z: Array, cov: Array, n_samples: int, *, rng: np.random.Generator
+    z: Array, cov: Array, n_samples: int, *, rng: np.random.Generator, exact: bool = False
 ) -> Array:
     """Draw an AT ``(n_samples, 7)`` centred on measurement ``z`` with tangent covariance ``cov``.
 
@@ -278,6 +278,10 @@ def sample_measurement(
         Number of samples N.
     rng : numpy.random.Generator
         Source of randomness.
+    exact : bool
+        If True, the tangent deviations are centred and whitened so that their sample mean is
+        exactly 0 and their sample covariance (``ddof=1``) exactly ``cov`` (needs
+        ``n_samples`` > the rank of ``cov``); the rows stay independent draws otherwise.
 
     Returns
     -------
@@ -286,8 +290,14 @@ def sample_measurement(
         directions where ``cov`` is zero (planar: z, roll, pitch stay 0).
     """
     w, v = np.linalg.eigh(cov)
-    root = v * np.sqrt(np.clip(w, 0.0, None))
-    delta = rng.standard_normal((n_samples, 6)) @ root.T
+    live = w > 1e-12 * max(float(w.max()), 1e-300)
+    root = v[:, live] * np.sqrt(w[live])
+    white = rng.standard_normal((n_samples, int(live.sum())))
+    if exact:
+        white -= white.mean(axis=0)
+        c = white.T @ white / (n_samples - 1)
+        white = white @ np.linalg.inv(np.linalg.cholesky(c)).T
+    delta = white @ root.T
     zero_var = np.diag(cov) == 0.0
     delta[:, zero_var] = 0.0
     return perturb(np.broadcast_to(z, (n_samples, 7)), delta)

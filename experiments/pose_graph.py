@@ -1,0 +1,613 @@
+"""Full-pose loop closures: the Monte Carlo stochastic map on 3D and planar pose graphs (issue 8).
+
+Runs the map (``mcsm.StochasticMap``) on a simulated pose graph (:mod:`experiments.posegraph_sim`)
+with every pose kept, one case I update per odometry edge and one case II update (PAPER §5.2)
+per loop closure, the measurements arriving in time order; then compares the final pose means
+with ground truth, with dead reckoning and with GTSAM's batch optimum (Levenberg-Marquardt on the
+same measurements and noise model). Printed per (scenario, method, space):
+
+* ATE: RMS position error after a rigid (rotation + translation, no scale) alignment to ground
+  truth (Umeyama), in metres;
+* NEES per degree of freedom of the poses: ``e^T P^-1 e / dof`` averaged over poses, with ``P``
+  the 6x6 tangent covariance of ``map.marginal("p0", pose)`` and ``e`` the tangent error of the
+  ground truth around the estimated mean (``[t_true - t_mean, log(q_mean^-1 q_true)]``; planar:
+  the ``x, y, yaw`` block). 1 means honest uncertainty;
+* non-finite values anywhere in the final means or covariances;
+* time per loop closure (mean over the run).
+
+A second part times single loop closures on maps of M = 500, 1000, 2500 poses for N = 200, 1000
+(the component is built with ``import_component`` from sampled odometry chains, so only the case II
+update is timed).
+
+Acceptance (issue 8): ATE ≤ 2x GTSAM, NEES/dof ≤ 2, no non-finite values, 3D and planar, with
+≥ 1000 poses, ≥ 500 loop closures, N = 200. Results go to ``experiments/results/`` as
+``pose_graph_runs.csv``, ``pose_graph_timing.csv`` and ``pose_graph_<scenario>.png``.
+
+Usage::
+
+    .venv/bin/python experiments/pose_graph.py                       # the full acceptance run
+    .venv/bin/python experiments/pose_graph.py --poses 400 --no-timing   # a short run
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import platform
+import sys
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+if __package__ in (None, ""):  # run as a script: make `experiments` importable
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from experiments.posegraph_sim import (  # noqa: E402
+    PoseGraph,
+    compose,
+    dead_reckoning,
+    qlog,
+    qmul,
+    relative,
+    sample_measurement,
+    simulate_2d,
+    simulate_3d,
+)
+
+Array = npt.NDArray[np.float64]
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def frame(k: int) -> str:
+    """Frame name of pose ``k`` in the map."""
+    return f"p{k}"
+
+
+# ---------------------------------------------------------------------------------------------
+# Metrics
+# ---------------------------------------------------------------------------------------------
+def align_rigid(est: Array, ref: Array) -> Array:
+    """Rigidly align ``est (P, 3)`` to ``ref (P, 3)`` (Umeyama, no scale), return it aligned."""
+    mu_e, mu_r = est.mean(0), ref.mean(0)
+    h = (est - mu_e).T @ (ref - mu_r)
+    u, _, vt = np.linalg.svd(h)
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    rot = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    return (est - mu_e) @ rot.T + mu_r
+
+
+def ate(est_poses: Array, true_poses: Array) -> float:
+    """Absolute trajectory error (m): RMS position error after rigid alignment."""
+    aligned = align_rigid(est_poses[:, :3], true_poses[:, :3])
+    return float(np.sqrt(np.mean(np.sum((aligned - true_poses[:, :3]) ** 2, axis=1))))
+
+
+def tangent_error(mean: Array, truth: Array) -> Array:
+    """Tangent error ``[t_true - t_mean, log(q_mean^-1 q_true)]`` of shape ``(..., 6)``."""
+    q_inv = mean[..., 3:] * np.array([1.0, -1.0, -1.0, -1.0])
+    return np.concatenate([truth[..., :3] - mean[..., :3], qlog(qmul(q_inv, truth[..., 3:]))], -1)
+
+
+def nees_per_dof(
+    means: Array, covs: Array, truth: Array, dof_index: npt.NDArray[np.int64]
+) -> Array:
+    """Per-pose NEES divided by the degrees of freedom, shape ``(P,)``.
+
+    Parameters
+    ----------
+    means : (P, 7) float64
+        Estimated pose means.
+    covs : (P, 6, 6) float64
+        Tangent covariances of the estimates, order ``[tx ty tz rx ry rz]``.
+    truth : (P, 7) float64
+        True poses.
+    dof_index : (d,) int
+        Free tangent components (all 6, or ``[0, 1, 5]`` planar).
+    """
+    e = tangent_error(means, truth)[:, dof_index]
+    p = covs[:, dof_index][:, :, dof_index]
+    sol = np.linalg.solve(p, e[..., None])[..., 0]
+    return np.einsum("pi,pi->p", e, sol) / len(dof_index)
+
+
+# ---------------------------------------------------------------------------------------------
+# GTSAM batch optimum
+# ---------------------------------------------------------------------------------------------
+def gtsam_optimum(graph: PoseGraph, init: Array) -> Array | None:
+    """Levenberg-Marquardt optimum of the graph with GTSAM, poses ``(P, 7)``; None without gtsam.
+
+    Pose 0 is held at the identity by a tight prior. 3D: ``BetweenFactorPose3`` with the full
+    covariance permuted to GTSAM's ``(rotation, translation)`` order; planar: ``Pose2``.
+    """
+    try:
+        import gtsam
+    except ImportError:
+        return None
+    fg = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    if graph.planar:
+        fg.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(), gtsam.noiseModel.Isotropic.Sigma(3, 1e-8)))
+        for (i, j), z, cov in zip(graph.edges, graph.measurements, graph.covariances, strict=True):
+            sub = cov[np.ix_([0, 1, 5], [0, 1, 5])]
+            yaw = 2.0 * np.arctan2(z[6], z[3])
+            fg.add(gtsam.BetweenFactorPose2(
+                int(i), int(j), gtsam.Pose2(z[0], z[1], yaw),
+                gtsam.noiseModel.Gaussian.Covariance(sub)))
+        for k, p in enumerate(init):
+            values.insert(k, gtsam.Pose2(p[0], p[1], 2.0 * np.arctan2(p[6], p[3])))
+    else:
+        perm = [3, 4, 5, 0, 1, 2]
+        fg.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 1e-8)))
+        for (i, j), z, cov in zip(graph.edges, graph.measurements, graph.covariances, strict=True):
+            fg.add(gtsam.BetweenFactorPose3(
+                int(i), int(j), _pose3(gtsam, z),
+                gtsam.noiseModel.Gaussian.Covariance(cov[np.ix_(perm, perm)])))
+        for k, p in enumerate(init):
+            values.insert(k, _pose3(gtsam, p))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(200)
+    params.setRelativeErrorTol(1e-10)
+    params.setAbsoluteErrorTol(1e-10)
+    result = gtsam.LevenbergMarquardtOptimizer(fg, values, params).optimize()
+    out = np.empty((graph.n_poses, 7))
+    for k in range(graph.n_poses):
+        if graph.planar:
+            p2 = result.atPose2(k)
+            th = p2.theta()
+            out[k] = [p2.x(), p2.y(), 0.0, np.cos(th / 2), 0.0, 0.0, np.sin(th / 2)]
+        else:
+            p3 = result.atPose3(k)
+            q = p3.rotation().toQuaternion()
+            out[k] = [*p3.translation(), q.w(), q.x(), q.y(), q.z()]
+    return out
+
+
+def _pose3(gtsam: object, p: Array) -> object:
+    g = gtsam  # typed as object: the gtsam module has no stubs
+    q = p[3:] / np.linalg.norm(p[3:])
+    return g.Pose3(g.Rot3.Quaternion(*q), g.Point3(*p[:3]))  # type: ignore[attr-defined]
+
+
+# ---------------------------------------------------------------------------------------------
+# Running the map
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class MapRun:
+    """Outcome of one run of the map over a graph."""
+
+    means: Array
+    covs: Array
+    loop_times_s: list[float] = field(default_factory=list)
+    odo_times_s: list[float] = field(default_factory=list)
+    error: str = ""
+
+
+UpdateFn = Callable[[object, int, int, Array, Array, np.random.Generator], None]
+
+
+EXACT_MOMENTS = False  # set by --exact-moments: observation samples with exact mean/covariance
+
+
+def plain_update(smap: object, i: int, j: int, z: Array, cov: Array,
+                 rng: np.random.Generator) -> None:
+    """One ``update(p_i, p_j, samples)`` with samples drawn around the measurement."""
+    n = smap.n_samples  # type: ignore[attr-defined]
+    x = sample_measurement(z, cov, n, rng=rng, exact=EXACT_MOMENTS)
+    smap.update(frame(i), frame(j), x)  # type: ignore[attr-defined]
+
+
+def mda_update(n_steps: int) -> UpdateFn:
+    """Loop closures as ``n_steps`` updates of covariance ``n_steps * cov`` each (MDA).
+
+    For a linear-Gaussian model and a deterministic (square-root) update this gives the same
+    posterior as one update; for the nonlinear pose-graph model it re-predicts the observation
+    after each partial step (a relinearisation done from outside the core).
+    """
+
+    def update(smap: object, i: int, j: int, z: Array, cov: Array,
+               rng: np.random.Generator) -> None:
+        for _ in range(n_steps):
+            plain_update(smap, i, j, z, n_steps * cov, rng)
+
+    return update
+
+
+def run_map(
+    graph: PoseGraph,
+    smap: object,
+    *,
+    rng: np.random.Generator,
+    loop_update: UpdateFn = plain_update,
+    progress: bool = False,
+) -> MapRun:
+    """Feed every measurement of ``graph`` to ``smap`` in arrival order; return final marginals.
+
+    Odometry edges are case I updates (a new pose joins the component of pose 0), loop closures
+    case II. Failures (an ``McsmError`` or non-finite output) end the run; ``error`` says why.
+    """
+    p = graph.n_poses
+    run = MapRun(np.full((p, 7), np.nan), np.full((p, 6, 6), np.nan))
+    t_start = time.perf_counter()
+    for k, ((i, j), z, cov, loop) in enumerate(
+        zip(graph.edges, graph.measurements, graph.covariances, graph.is_loop, strict=True)
+    ):
+        t0 = time.perf_counter_ns()
+        try:
+            if loop:
+                loop_update(smap, int(i), int(j), z, cov, rng)
+            else:
+                plain_update(smap, int(i), int(j), z, cov, rng)
+        except Exception as exc:  # noqa: BLE001 - any failure ends this run, reported in the table
+            run.error = f"edge {k} ({i}->{j}): {type(exc).__name__}: {exc}"
+            break
+        dt = (time.perf_counter_ns() - t0) * 1e-9
+        (run.loop_times_s if loop else run.odo_times_s).append(dt)
+        if progress and k % 500 == 0:
+            print(f"    edge {k}/{len(graph.edges)}  {time.perf_counter() - t_start:.1f} s",
+                  flush=True)
+    run.means[0] = [0, 0, 0, 1.0, 0, 0, 0]
+    run.covs[0] = np.zeros((6, 6))
+    if not run.error:
+        for k in range(1, p):
+            mean, c = smap.marginal(frame(0), frame(k))  # type: ignore[attr-defined]
+            run.means[k] = mean
+            run.covs[k] = c
+    return run
+
+
+# ---------------------------------------------------------------------------------------------
+# Experiment table
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class Row:
+    """One line of ``pose_graph_runs.csv``."""
+
+    scenario: str
+    method: str
+    space: str
+    analysis: str
+    loop_update: str
+    n_samples: int
+    n_poses: int
+    n_loops: int
+    seed: int
+    ate_map_m: float
+    ate_gtsam_m: float
+    ate_dead_reckoning_m: float
+    ate_ratio_to_gtsam: float
+    nees_per_dof: float
+    nees_per_dof_median: float
+    nees_t_per_dof: float
+    nees_r_per_dof: float
+    nonfinite: int
+    ms_per_loop: float
+    run_s: float
+    accepted: bool
+    error: str
+
+
+def make_graph(scenario: str, n_poses: int, seed: int) -> PoseGraph:
+    """The simulated graph of a scenario (``"3d"`` or ``"2d"``)."""
+    rng = np.random.default_rng(seed)
+    return simulate_2d(n_poses, rng=rng) if scenario == "2d" else simulate_3d(n_poses, rng=rng)
+
+
+def evaluate(
+    graph: PoseGraph,
+    run: MapRun,
+    *,
+    scenario: str,
+    config: dict[str, object],
+    seed: int,
+    ate_gtsam: float,
+    ate_dr: float,
+    run_s: float,
+) -> Row:
+    """Metrics of one run against ground truth."""
+    truth = graph.poses_true
+    idx = graph.dof_index
+    finite = np.isfinite(run.means).all(axis=1) & np.isfinite(run.covs).all(axis=(1, 2))
+    nonfinite = int((~finite).sum())
+    if run.error or nonfinite:
+        a = nees = nees_med = nt = nr = float("nan")
+    else:
+        a = ate(run.means, truth)
+        per = nees_per_dof(run.means[1:], run.covs[1:], truth[1:], idx)
+        nees, nees_med = float(per.mean()), float(np.median(per))
+        t_idx = idx[idx < 3]
+        r_idx = idx[idx >= 3]
+        nt = float(nees_per_dof(run.means[1:], run.covs[1:], truth[1:], t_idx).mean())
+        nr = float(nees_per_dof(run.means[1:], run.covs[1:], truth[1:], r_idx).mean())
+    ratio = a / ate_gtsam if ate_gtsam > 0 else float("nan")
+    ok = (not run.error) and nonfinite == 0 and bool(ratio <= 2.0) and bool(nees <= 2.0)
+    return Row(
+        scenario=scenario, method=str(config["method"]), space=str(config["space"]),
+        analysis=str(config["analysis"]), loop_update=str(config["loop_update"]),
+        n_samples=int(config["n_samples"]),  # type: ignore[call-overload]
+        n_poses=graph.n_poses, n_loops=graph.n_loops, seed=seed,
+        ate_map_m=a, ate_gtsam_m=ate_gtsam, ate_dead_reckoning_m=ate_dr,
+        ate_ratio_to_gtsam=ratio, nees_per_dof=nees, nees_per_dof_median=nees_med,
+        nees_t_per_dof=nt, nees_r_per_dof=nr, nonfinite=nonfinite,
+        ms_per_loop=1e3 * float(np.mean(run.loop_times_s)) if run.loop_times_s else float("nan"),
+        run_s=run_s, accepted=ok, error=run.error,
+    )
+
+
+def make_map(config: dict[str, object]) -> object:
+    """A ``StochasticMap`` with the options in ``config``."""
+    from mcsm import StochasticMap
+
+    return StochasticMap(
+        int(config["n_samples"]),  # type: ignore[call-overload]
+        method=config["method"], space=config["space"], analysis=config["analysis"],
+        shrink=config["shrink"], inflation=float(config["inflation"]),  # type: ignore[arg-type]
+    )
+
+
+def run_config(
+    graph: PoseGraph,
+    config: dict[str, object],
+    *,
+    scenario: str,
+    seed: int,
+    ate_gtsam: float,
+    ate_dr: float,
+    map_factory: Callable[[dict[str, object]], object] = make_map,
+    progress: bool = False,
+) -> tuple[Row, MapRun]:
+    """Run and evaluate one configuration of the map on ``graph``."""
+    mda = int(config["loop_update"].split("x")[1]) if str(config["loop_update"]).startswith(
+        "mdax") else 1  # type: ignore[union-attr]
+    loop_update = plain_update if mda == 1 else mda_update(mda)
+    smap = map_factory(config)
+    t0 = time.perf_counter()
+    run = run_map(graph, smap, rng=np.random.default_rng(seed + 1), loop_update=loop_update,
+                  progress=progress)
+    run_s = time.perf_counter() - t0
+    row = evaluate(graph, run, scenario=scenario, config=config, seed=seed,
+                   ate_gtsam=ate_gtsam, ate_dr=ate_dr, run_s=run_s)
+    return row, run
+
+
+# ---------------------------------------------------------------------------------------------
+# Timing of single loop closures
+# ---------------------------------------------------------------------------------------------
+def build_chain_map(smap: object, graph: PoseGraph, n_samples: int,
+                    rng: np.random.Generator) -> None:
+    """Put poses 0..P-1 of ``graph`` into ``smap`` as one component from sampled odometry."""
+    from mcsm.core.smap import Submap  # type: ignore[attr-defined]
+
+    odo = ~graph.is_loop
+    edges = np.empty((graph.n_poses, n_samples, 7))
+    edges[0] = [0, 0, 0, 1.0, 0, 0, 0]
+    for k, (z, cov) in enumerate(zip(graph.measurements[odo], graph.covariances[odo],
+                                     strict=True)):
+        edges[k + 1] = compose(edges[k], sample_measurement(z, cov, n_samples, rng=rng))
+    frames = tuple(frame(k) for k in range(graph.n_poses))
+    smap.import_component(Submap(  # type: ignore[attr-defined]
+        root=frames[0], frames=frames, is_point=tuple(False for _ in frames), edges=edges))
+
+
+def time_loop_closures(
+    sizes: Iterable[int],
+    sample_counts: Iterable[int],
+    configs: list[dict[str, object]],
+    *,
+    repeats: int,
+    seed: int,
+    map_factory: Callable[[dict[str, object]], object] = make_map,
+) -> list[dict[str, object]]:
+    """Median time of one loop closure on a map of M poses, per (M, N, config)."""
+    rows: list[dict[str, object]] = []
+    for n in sample_counts:
+        for m in sizes:
+            graph = make_graph("3d", m, seed)
+            for config in configs:
+                cfg = {**config, "n_samples": n}
+                rng = np.random.default_rng(seed + 2)
+                smap = map_factory(cfg)
+                build_chain_map(smap, graph, n, rng)
+                pairs = [(int(i), int(j)) for i, j in graph.edges[graph.is_loop]]
+                pairs = pairs[-(repeats + 1):]  # long loops, across the whole chain
+                times = []
+                for i, j in pairs:
+                    z = relative(graph.poses_true[i], graph.poses_true[j])
+                    cov = graph.covariances[graph.is_loop][0]
+                    samples = sample_measurement(z, cov, n, rng=rng)
+                    t0 = time.perf_counter_ns()
+                    smap.update(frame(i), frame(j), samples)  # type: ignore[attr-defined]
+                    times.append((time.perf_counter_ns() - t0) * 1e-6)
+                times = times[1:]  # first call is a warm-up
+                copy_ms = _stream_pass_ms(m, n)
+                row = {
+                    "M": m, "N": n, "method": cfg["method"], "space": cfg["space"],
+                    "analysis": cfg["analysis"], "median_ms": float(np.median(times)),
+                    "min_ms": float(np.min(times)), "max_ms": float(np.max(times)),
+                    "repeats": len(times), "stream_pass_ms": copy_ms,
+                    "passes": float(np.median(times)) / copy_ms,
+                }
+                rows.append(row)
+                print("  M={M:5d} N={N:5d} {method:5s} {space:10s} median {median_ms:9.2f} ms "
+                      "(min {min_ms:.2f}, max {max_ms:.2f}, {repeats} runs) = {passes:.1f} "
+                      "streaming passes".format(**row), flush=True)
+                del smap
+    return rows
+
+
+def _stream_pass_ms(m: int, n: int) -> float:
+    a = np.ones((m, n, 7))
+    b = np.empty_like(a)
+    ts = []
+    for _ in range(5):
+        t0 = time.perf_counter_ns()
+        np.copyto(b, a)
+        ts.append((time.perf_counter_ns() - t0) * 1e-6)
+    return float(np.median(ts))
+
+
+# ---------------------------------------------------------------------------------------------
+# Output
+# ---------------------------------------------------------------------------------------------
+def write_csv(path: Path, rows: list[dict[str, object]]) -> None:
+    """Write dict rows to ``path`` (header from the first row)."""
+    if not rows:
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+
+
+def plot_scenario(path: Path, graph: PoseGraph, curves: dict[str, Array]) -> None:
+    """Top view of truth, dead reckoning, GTSAM and the map runs (aligned), one PNG."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return
+    fig, ax = plt.subplots(figsize=(7, 7))
+    truth = graph.poses_true[:, :3]
+    ax.plot(truth[:, 0], truth[:, 1], "k-", lw=2.0, label="ground truth")
+    for name, poses in curves.items():
+        if not np.isfinite(poses).all():
+            continue
+        al = align_rigid(poses[:, :3], truth)
+        ax.plot(al[:, 0], al[:, 1], lw=0.8, label=name)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.legend(fontsize=7)
+    ax.set_title(f"{'planar' if graph.planar else '3D'}: {graph.n_poses} poses, "
+                 f"{graph.n_loops} loop closures (rigidly aligned)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_timing(path: Path, rows: list[dict[str, object]]) -> None:
+    """Time per loop closure vs M for each (N, method, space)."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return
+    fig, ax = plt.subplots(figsize=(6, 4))
+    keys = sorted({(r["N"], r["method"], r["space"]) for r in rows}, key=str)
+    for key in keys:
+        sel = [r for r in rows if (r["N"], r["method"], r["space"]) == key]
+        ax.loglog([r["M"] for r in sel], [r["median_ms"] for r in sel], "o-",
+                  label=f"N={key[0]} {key[1]} {key[2]}")
+    ax.set_xlabel("poses in the component M")
+    ax.set_ylabel("median time per loop closure (ms)")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _fmt_row(r: Row) -> str:
+    return (f"{r.scenario:3s} {r.method:5s} {r.space:10s} {r.analysis:5s} {r.loop_update:6s} "
+            f"N={r.n_samples:<5d} ATE {r.ate_map_m:8.3f} m  GTSAM {r.ate_gtsam_m:6.3f}  "
+            f"DR {r.ate_dead_reckoning_m:7.3f}  ratio {r.ate_ratio_to_gtsam:7.2f}  "
+            f"NEES/dof {r.nees_per_dof:9.3g} (t {r.nees_t_per_dof:.3g}, r {r.nees_r_per_dof:.3g},"
+            f" median {r.nees_per_dof_median:.3g})  nonfinite {r.nonfinite}  "
+            f"{r.ms_per_loop:7.2f} ms/loop  {'PASS' if r.accepted else 'FAIL'}"
+            + (f"  [{r.error}]" if r.error else ""))
+
+
+def main(args: argparse.Namespace) -> list[Row]:
+    """Run the experiment described by the parsed ``args``; print and save the figures."""
+    out = Path(args.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    tag = f"_{args.tag}" if args.tag else ""
+    print("settings:", vars(args))
+    print(f"numpy {np.__version__}, python {platform.python_version()}, "
+          f"cores {__import__('os').cpu_count()}")
+    global EXACT_MOMENTS
+    EXACT_MOMENTS = bool(args.exact_moments)
+    shrink = args.shrink if args.shrink is not None and args.shrink >= 0 else None
+    rows: list[Row] = []
+    for scenario in args.scenarios:
+        graph = make_graph(scenario, args.poses, args.seed)
+        print(f"\n[{scenario}] poses {graph.n_poses}, loop closures {graph.n_loops}, "
+              f"simulator settings {graph.settings}", flush=True)
+        dr = dead_reckoning(graph)
+        ate_dr = ate(dr, graph.poses_true)
+        opt = None if args.no_gtsam else gtsam_optimum(graph, dr)
+        ate_gt = ate(opt, graph.poses_true) if opt is not None else float("nan")
+        print(f"  dead reckoning ATE {ate_dr:.3f} m; GTSAM LM optimum ATE {ate_gt:.3f} m",
+              flush=True)
+        curves: dict[str, Array] = {"dead reckoning": dr}
+        if opt is not None:
+            curves["GTSAM"] = opt
+        for method in args.methods:
+            for space in args.spaces:
+                for loop_update in args.loop_updates:
+                    config: dict[str, object] = {
+                        "n_samples": args.n_samples, "method": method, "space": space,
+                        "analysis": args.analysis, "shrink": shrink,
+                        "inflation": args.inflation, "loop_update": loop_update,
+                    }
+                    row, run = run_config(graph, config, scenario=scenario, seed=args.seed,
+                                          ate_gtsam=ate_gt, ate_dr=ate_dr,
+                                          progress=args.progress)
+                    rows.append(row)
+                    print("  " + _fmt_row(row), flush=True)
+                    curves[f"{method}/{space}/{loop_update}"] = run.means
+        plot_scenario(out / f"pose_graph_{scenario}{tag}.png", graph, curves)
+    if rows:
+        write_csv(out / f"pose_graph_runs{tag}.csv", [asdict(r) for r in rows])
+    if not args.no_timing:
+        print("\ntime per loop closure (3D, every pose kept):", flush=True)
+        configs = [{"method": m, "space": s, "analysis": args.analysis, "shrink": shrink,
+                    "inflation": args.inflation} for m in args.timing_methods
+                   for s in args.spaces[:1]]
+        trows = time_loop_closures(args.timing_m, args.timing_n, configs,
+                                   repeats=args.timing_repeats, seed=args.seed)
+        write_csv(out / f"pose_graph_timing{tag}.csv", trows)
+        plot_timing(out / f"pose_graph_timing{tag}.png", trows)
+    print(f"\nresults in {out}")
+    return rows
+
+
+def parse(argv: list[str] | None = None) -> argparse.Namespace:
+    """Command-line options (defaults: the issue 8 acceptance run)."""
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--poses", type=int, default=1000, help="poses in the simulated graph")
+    ap.add_argument("--seed", type=int, default=8)
+    ap.add_argument("--n-samples", type=int, default=200, help="N")
+    ap.add_argument("--scenarios", nargs="*", default=["3d", "2d"], choices=["3d", "2d"],
+                    help="scenarios to run (none: timing only)")
+    ap.add_argument("--methods", nargs="+", default=["joint", "paper"])
+    ap.add_argument("--spaces", nargs="+", default=["tangent", "quaternion"])
+    ap.add_argument("--analysis", default="ensrf", choices=["ensrf", "denkf", "enkf"])
+    ap.add_argument("--shrink", type=float, default=4.0,
+                    help="correlation shrink c of the joint update (negative: none)")
+    ap.add_argument("--inflation", type=float, default=1.0)
+    ap.add_argument("--loop-updates", nargs="+", default=["single"],
+                    help="'single' or 'mdaxK' (K partial updates per loop closure)")
+    ap.add_argument("--exact-moments", action="store_true",
+                    help="draw each measurement's N samples with exact mean and covariance")
+    ap.add_argument("--no-gtsam", action="store_true")
+    ap.add_argument("--no-timing", action="store_true")
+    ap.add_argument("--timing-m", type=int, nargs="+", default=[500, 1000, 2500])
+    ap.add_argument("--timing-n", type=int, nargs="+", default=[200, 1000])
+    ap.add_argument("--timing-methods", nargs="+", default=["joint", "paper"])
+    ap.add_argument("--timing-repeats", type=int, default=5)
+    ap.add_argument("--progress", action="store_true")
+    ap.add_argument("--out-dir", default=str(RESULTS))
+    ap.add_argument("--tag", default="", help="suffix of the output file names")
+    return ap.parse_args(argv)
+
+
+if __name__ == "__main__":
+    main(parse())
