@@ -560,8 +560,9 @@ def main(settings: Settings, results: Path = RESULTS) -> bool:
                         print("victoria:", out, flush=True)
     rows = read_rows(results)
     if not rows:
-        print("no run files")
-        return False
+        print(f"no scenario run files under {results / 'runs'}")
+        _print_victoria(results)
+        return settings.victoria
     summary = summarise(rows)
     with open(results / "summary.md", "w") as f:
         print_summary(summary, f)
@@ -570,11 +571,15 @@ def main(settings: Settings, results: Path = RESULTS) -> bool:
     ok = acceptance(summary, settings.n_iterations)
     for p in plot(rows, results, settings.n_iterations):
         print("plot:", p)
+    _print_victoria(results)
+    return ok
+
+
+def _print_victoria(results: Path) -> None:
     vp = results / "victoria_runs.csv"
     if vp.exists():
         print("\nVictoria Park runs (landmark RMS vs GTSAM LM optimum):")
         print(vp.read_text())
-    return ok
 
 
 def parse_args(argv: Sequence[str] | None = None) -> tuple[Settings, Path]:

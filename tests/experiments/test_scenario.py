@@ -199,3 +199,19 @@ def test_driver_feeds_odometry_then_sightings_and_keeps_x0() -> None:
     np.testing.assert_array_equal(means[:, 0], ids)
     np.testing.assert_array_equal(covs[:, 0, 0], ids + 1)
     np.testing.assert_allclose(landmarks_in_frame(sc, 0), sc.landmarks, atol=1e-12)
+
+
+def test_estimates_from_a_real_map_match_its_samples() -> None:
+    from mcsm import StochasticMap
+
+    cfg = PaperScenarioConfig(n_iterations=40, n_landmarks=30)
+    sc = generate_paper_scenario(cfg, np.random.default_rng(20260111))
+    m = StochasticMap(64)
+    run_scenario_on_map(sc, m, 64, np.random.default_rng(20260112))
+    assert [f for f in m.frames() if f.startswith("x")] == ["x0", "x40"]
+    ids, means, covs = landmark_estimates(m, range(30))
+    assert ids.size > 0
+    for j, mean, cov in zip(ids, means, covs, strict=True):
+        xy = m.query("x0", f"l{j}")[:, :2]
+        np.testing.assert_allclose(mean, xy.mean(axis=0), atol=1e-9)
+        np.testing.assert_allclose(cov, np.cov(xy.T), rtol=1e-9, atol=1e-12)
