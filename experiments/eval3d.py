@@ -20,7 +20,7 @@ estimator) and ``eval3d.png`` (top view of the trajectories and ATE/time bars).
 Usage::
 
     .venv/bin/python experiments/eval3d.py --quick     # 400 poses (make bench)
-    .venv/bin/python experiments/eval3d.py             # 600 poses
+    .venv/bin/python experiments/eval3d.py             # 500 poses
 """
 
 from __future__ import annotations
@@ -239,7 +239,7 @@ if __name__ == "__main__":
     parser.add_argument("--seed", type=int, default=SEED)
     parser.add_argument("--results", type=Path, default=ROOT / "experiments" / "results")
     args = parser.parse_args()
-    n_poses = args.poses or (400 if args.quick else 600)
+    n_poses = args.poses or (400 if args.quick else 500)
     all_configs = [
         ("joint", "tangent"),
         ("joint", "quaternion"),
