@@ -165,6 +165,12 @@ def core_only(n: int, setup: list[Op], batches: list[list[Op]]) -> list[float]:
     return out
 
 
+def cpu_s(pid: int) -> float:
+    """User + system CPU seconds of a process (Linux /proc), all its threads."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def stats(xs: list[float]) -> dict[str, float]:
     s = sorted(xs)
     return {"median": statistics.median(s), "p10": s[max(0, int(0.1 * len(s)) - 1)],
@@ -179,6 +185,7 @@ def run_config(name: str, n: int, setup: list[Op], ops: list[Op], repeats: int,
     proc, ep, rec = start_server(workdir, n, name)
     try:
         with MapClient(connect=ep, timeout_s=60) as c:
+            cpu0 = cpu_s(proc.pid)
             t_setup = time.perf_counter_ns()
             for op in setup:
                 send(c, op)
@@ -191,6 +198,8 @@ def run_config(name: str, n: int, setup: list[Op], ops: list[Op], repeats: int,
                     k = send(c, op)
                     kinds[k] = kinds.get(k, 0) + 1
                 live.append((time.perf_counter_ns() - t0) / 1e9)
+            # the same operations replay will apply: setup + measured batches
+            server_cpu_ms = 1e3 * (cpu_s(proc.pid) - cpu0) / (len(setup) + per * repeats)
             frames = c.info().n_frames
             a, b = query_pair
             for _ in range(20):  # warm-up
@@ -207,7 +216,9 @@ def run_config(name: str, n: int, setup: list[Op], ops: list[Op], repeats: int,
     finally:
         stop_server(proc)
     core = core_only(n, setup, batches)
+    c0 = time.process_time()
     rep = replay(rec)
+    replay_cpu_ms = 1e3 * (time.process_time() - c0) / max(1, rep.n_inputs)
     n_total = len(setup) + per * repeats
     live_rates = [per / t for t in live]
     core_rates = [per / t for t in core]
@@ -219,6 +230,7 @@ def run_config(name: str, n: int, setup: list[Op], ops: list[Op], repeats: int,
         "replay_ops_per_s": rep.n_inputs / rep.elapsed_s, "replay_inputs": rep.n_inputs,
         "replay_identical": rep.identical, "live_ops_incl_setup": n_total,
         "live_whole_file_ops_per_s": n_total / (setup_s + sum(live)),
+        "server_cpu_ms_per_op": server_cpu_ms, "replay_cpu_ms_per_op": replay_cpu_ms,
         "recording_bytes": rec.stat().st_size,
     }
 
@@ -253,7 +265,8 @@ def main() -> None:
         print(json.dumps(r))
     print()
     hdr = (f"{'config':<10} {'frames':>6} {'acked ops/s':>16} {'core-only ops/s':>16} "
-           f"{'replay/live (file)':>18} {'query ms (p90)':>15} {'marginal ms':>11}")
+           f"{'replay/live (file)':>18} {'CPU ms/op srv|replay':>20} {'query ms (p90)':>15} "
+           f"{'marginal ms':>11}")
     print(hdr)
     for r in results:
         a, c, q, m = (r["acked_ops_per_s"], r["core_only_ops_per_s"], r["query_rtt_ms"],
@@ -263,12 +276,15 @@ def main() -> None:
               f"{c['median']:>7.0f} [{c['p10']:.0f}-{c['p90']:.0f}] "
               f"{r['replay_ops_per_s']:>7.0f}/{r['live_whole_file_ops_per_s']:<7.0f}"
               f"={r['replay_ops_per_s'] / r['live_whole_file_ops_per_s']:4.1f}x"
+              f" {r['server_cpu_ms_per_op']:>10.2f} | {r['replay_cpu_ms_per_op']:<7.2f}"
               f" {q['median']:>7.2f} ({q['p90']:.2f}) "
               f"{m['median']:>11.2f}")
     print("\nacked ops/s: median [p10-p90] over the repeats; each op is an acknowledged RPC "
           "(update or remove), recorded and flushed before its ack. replay/live (file): ops/s "
           "of mcsm.recording.replay over the whole recording vs the live run that wrote it "
-          "(setup included), and their ratio.")
+          "(setup included), and their ratio. CPU ms/op: CPU time of the server process (all "
+          "threads: zenoh, decode, core, recording) vs of replay, per input of the same file; "
+          "the fair comparison when the machine is shared.")
 
 
 if __name__ == "__main__":
