@@ -9,10 +9,11 @@ script                                 quick settings
 =====================================  =====================================================
 benchmarks/bench_core.py               its own ``--quick`` if it has one
 benchmarks/service_throughput.py       its own ``--quick`` if it has one
+benchmarks/bench_oracle.py             2 seeds, N 200/1000
 experiments/consistency.py             ``--quick`` (500 iterations, N 200/1000, 4 variants)
 experiments/pose_graph.py              400 poses (3D and 2D), loop-closure timing M 500/1000
 experiments/paper_figures.py           ``--quick``: 400 iterations, N 200/1000, Fig. 6 N 200/1000
-experiments/realdata.py                ``--quick``: Victoria Park first 2000 poses, N = 200
+experiments/realdata.py                ``--quick``: Victoria Park first 1000 poses, N = 200
 experiments/eval3d.py                  ``--quick``: 400-pose 3D helix, N = 200
 =====================================  =====================================================
 
@@ -74,11 +75,13 @@ _POSE_GRAPH_QUICK = ("--poses", "400", "--timing-m", "500", "1000", "--timing-n"
 STEPS = [
     Step("bench_core", "benchmarks/bench_core.py", (), 80.0, quick_if_supported=True),
     Step("service_throughput", "benchmarks/service_throughput.py", (), 80.0, True),
+    Step("bench_oracle", "benchmarks/bench_oracle.py", ("--seeds", "2", "--sizes", "200", "1000"),
+         60.0),
     Step("consistency", "experiments/consistency.py",
-         ("--quick", "--results", str(QUICK / "consistency")), 180.0),
+         ("--quick", "--results", str(QUICK / "consistency")), 170.0),
     Step("pose_graph", "experiments/pose_graph.py", _POSE_GRAPH_QUICK, 120.0),
     Step("paper_figures", "experiments/paper_figures.py", ("--quick", "--results", str(QUICK)),
-         180.0),
+         170.0),
     Step("realdata", "experiments/realdata.py", ("--quick", "--results", str(QUICK)), 110.0),
     Step("eval3d", "experiments/eval3d.py", ("--quick", "--results", str(QUICK)), 80.0),
 ]  # fmt: skip
