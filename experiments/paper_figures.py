@@ -174,14 +174,21 @@ def _log_steps(n_iterations: int, every: int) -> set[int]:
 
 
 def run_map(
-    figure: str, scenario: Scenario, run: AccuracyRun, *, log_every: int, seed: int
+    figure: str,
+    scenario: Scenario,
+    run: AccuracyRun,
+    *,
+    log_every: int,
+    seed: int,
+    partial: Callable[[list[dict[str, Any]]], None] | None = None,
 ) -> list[dict[str, Any]]:
     """Feed the scenario into one map variant; score it every ``log_every`` iterations.
 
     CPU time (``time.process_time``; the machine is shared, wall time would count waits
     for a core) per iteration covers the odometry update, the point updates and the removal of
     the old pose (scoring excluded); ``ms_per_update`` divides it by the number of updates in the
-    logging window (odometry + sightings).
+    logging window (odometry + sightings). ``partial(rows)`` is called every 5 logged
+    iterations, so a run cut short still leaves its curve.
     """
     v = run.variant
     smap = StochasticMap(
@@ -221,6 +228,8 @@ def run_map(
                 )
             )
             clock.update(busy=0.0, iters=0, updates=0)
+            if partial is not None and len(rows) % 5 == 0:
+                partial(rows)
         clock["t"] = time.process_time()
 
     rng = np.random.default_rng(seed)
@@ -384,6 +393,23 @@ def read_csv(path: Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     return header, rows
 
 
+def read_run(path: Path) -> list[dict[str, Any]]:
+    """Rows of one cached run; map rows are labelled by the run's file name.
+
+    The file name carries the shortened-run suffix (``-it400``) and ``.partial`` for a run that
+    was cut short, which the plots and tables then show.
+    """
+    rows = read_csv(path)[1]
+    figure = path.name.split("_", 1)[0]
+    name = path.name[len(figure) + 1 : -len(".csv")]
+    if name.endswith(".partial"):
+        name = name[: -len(".partial")] + " (partial)"
+    for r in rows:
+        if r["estimator"] == "mcsm":
+            r["label"] = name
+    return rows
+
+
 def accuracy_figure(
     figure: str,
     sigma_theta_deg: float,
@@ -428,10 +454,20 @@ def accuracy_figure(
     for run in runs:
         its = min(run.n_iterations, n_iterations)
         run_i = AccuracyRun(run.variant, run.n_samples, its)
+        name = run.variant.label(run.n_samples) + (f"-it{its}" if its != n_iterations else "")
         jobs.append(
             (
-                run.variant.label(run.n_samples) + (f"-it{its}" if its != n_iterations else ""),
-                lambda r=run_i: run_map(figure, scenario, r, log_every=log_every, seed=SAMPLE_SEED),
+                name,
+                lambda r=run_i, name=name: run_map(
+                    figure,
+                    scenario,
+                    r,
+                    log_every=log_every,
+                    seed=SAMPLE_SEED,
+                    partial=lambda rows, name=name: _write_csv(
+                        results / "runs" / f"{figure}_{name}.partial.csv", rows, {"partial": True}
+                    ),
+                ),
                 {"variant": asdict(run.variant), "n_samples": run.n_samples, "iterations": its},
             )
         )
@@ -439,17 +475,18 @@ def accuracy_figure(
         path = results / "runs" / f"{figure}_{name}.csv"
         header = {**base_header, **extra, "log_every": log_every}
         if path.exists() and not force:
-            old_header, old_rows = read_csv(path)
+            old_header, _ = read_csv(path)
             old_header.pop("wall_s", None)
             if old_header == json.loads(json.dumps(header, sort_keys=True)):
                 print(f"{figure} {name}: cached ({path.relative_to(results)})", flush=True)
-                rows.extend(old_rows)
+                rows.extend(read_run(path))
                 continue
         t0 = time.perf_counter()
         new_rows = job()
         header["wall_s"] = round(time.perf_counter() - t0, 1)
         _write_csv(path, new_rows, header)
-        rows.extend(read_csv(path)[1])
+        path.with_name(path.stem + ".partial.csv").unlink(missing_ok=True)
+        rows.extend(read_run(path))
         last = [r for r in new_rows if r and r["iteration"] > 0]
         if last:
             r = last[-1]
@@ -925,6 +962,7 @@ def settings(quick: bool) -> dict[str, Any]:
             AccuracyRun(paper_t, 200, 1000),
             AccuracyRun(joint, 1000, its),
             AccuracyRun(joint, 5000, 400),
+            AccuracyRun(joint, 5000, 1000),
         ],
         "fig5_runs": [
             AccuracyRun(joint, 200, its),
@@ -960,9 +998,7 @@ def main(
         if plot_only:
             # Gather whatever runs exist (a sweep may still be going on or have been cut short).
             rows = [
-                r
-                for p in sorted((results / "runs").glob(f"{figure}_*.csv"))
-                for r in read_csv(p)[1]
+                r for p in sorted((results / "runs").glob(f"{figure}_*.csv")) for r in read_run(p)
             ]
             _write_csv(csv_path, rows, {"mode": mode, "sigma_theta_deg": sigma})
         else:
