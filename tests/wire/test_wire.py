@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import base64
+import dataclasses
 import json
 from importlib import resources
 from typing import Any
@@ -209,3 +210,34 @@ def test_schemas_reject_what_the_codec_rejects() -> None:
     assert not v.is_valid({**good, "b": "a/b"})
     assert not v.is_valid({**good, "extra": 1})
     assert not v.is_valid({**good, "samples": {**good["samples"], "shape": [3, 6]}})
+
+
+_leaf = st.one_of(st.none(), st.booleans(), st.integers(-2**63, 2**64 - 1), st.floats(),
+                  st.text(max_size=20), st.binary(max_size=64))
+_values = st.recursive(_leaf, lambda inner: st.one_of(
+    st.lists(inner, max_size=5), st.dictionaries(st.text(max_size=10), inner, max_size=5)),
+    max_leaves=20)
+_near_valid = st.fixed_dictionaries(
+    {"v": st.sampled_from([1, 1, 1, 2, "1", None])},
+    optional={"id": _values | st.just("x"), "a": _values | st.just("w"),
+              "b": _values | st.just("r"), "frame": _values | st.just("w"),
+              "op": st.sampled_from(["export", "import", "x"]),
+              "samples": _values | st.fixed_dictionaries(
+                  {"dtype": st.sampled_from(["<f8", ">f8", 1]),
+                   "shape": st.lists(st.integers(-1, 20), max_size=3),
+                   "data": st.binary(max_size=600)}),
+              "submap": _values, "want": _values})
+
+
+@settings(deadline=None, max_examples=120)
+@given(payload=st.binary(max_size=400) | _values.map(msgpack.packb)
+       | _near_valid.map(msgpack.packb),
+       op=st.sampled_from(["update", "remove", "query", "info", "submap"]))
+def test_decoders_only_raise_typed_errors(payload: bytes, op: str) -> None:
+    """Whatever bytes arrive, a decoder returns a checked message or raises an McsmError."""
+    try:
+        msg = decode_for(op, payload, 4)
+    except McsmError as exc:
+        assert exc.to_dict()["error"] == type(exc).__name__
+    else:
+        assert dataclasses.is_dataclass(msg)
