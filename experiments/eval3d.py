@@ -212,7 +212,7 @@ def plot(path: Path, rows: list[dict[str, Any]], curves: dict[str, Array], n_sam
     fixed = {"ground truth": ("k", 2.0), "dead reckoning": ("0.6", 1.0), "GTSAM LM": ("r", 1.2)}
     palette = iter(["tab:blue", "tab:orange", "tab:green", "tab:purple", "tab:brown"])
     for name, poses in curves.items():
-        color, lw = fixed.get(name, (next(palette, "tab:cyan"), 0.8))
+        color, lw = fixed[name] if name in fixed else (next(palette, "tab:cyan"), 0.8)
         ax0.plot(poses[:, 0], poses[:, 1], color=color, lw=lw, label=name)
     ax0.set_aspect("equal")
     ax0.set_title("top view (x, y), pinned at pose 0")
