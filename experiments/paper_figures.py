@@ -721,7 +721,14 @@ def _series(rows: Sequence[dict[str, Any]]) -> dict[str, list[dict[str, Any]]]:
             out.setdefault(r["label"], []).append(r)
     for v in out.values():
         v.sort(key=lambda r: r["iteration"])
-    return out
+    # The same configuration run to different lengths (same seeds, so identical where they
+    # overlap): keep the longest.
+    best: dict[str, str] = {}
+    for label, v in out.items():
+        base = label.split("-it")[0].split(" (")[0]
+        if base not in best or v[-1]["iteration"] > out[best[base]][-1]["iteration"]:
+            best[base] = label
+    return {label: v for label, v in out.items() if label in best.values()}
 
 
 def _style(label: str) -> dict[str, Any]:
