@@ -958,7 +958,7 @@ def settings(quick: bool) -> dict[str, Any]:
     # Cheap runs first, so an interrupted sweep still has them. The machine (2 cores shared by
     # several jobs, ~8% of a core per process during these runs) could not afford 2000
     # iterations at N = 5000 or for the paper method: N = 5000 stops at 400 iterations (past the
-    # loop closure at ~340) in Fig. 5 and at 1000 in Fig. 4, the paper method at 1000, and the
+    # loop closure at ~340) in Fig. 5 and at 1000 in Fig. 4, the paper method at 600, and the
     # run names say so ("-it400").
     return {
         "iterations": its,
@@ -966,7 +966,7 @@ def settings(quick: bool) -> dict[str, Any]:
         "fig4_runs": [
             AccuracyRun(joint, 200, its),
             AccuracyRun(tuned200, 200, its),
-            AccuracyRun(paper_t, 200, 1000),
+            AccuracyRun(paper_t, 200, 600),
             AccuracyRun(joint, 1000, its),
             AccuracyRun(joint, 5000, 400),
             AccuracyRun(joint, 5000, 1000),
@@ -974,7 +974,7 @@ def settings(quick: bool) -> dict[str, Any]:
         "fig5_runs": [
             AccuracyRun(joint, 200, its),
             AccuracyRun(tuned200, 200, its),
-            AccuracyRun(paper_t, 200, 1000),
+            AccuracyRun(paper_t, 200, 600),
             AccuracyRun(joint, 1000, its),
             AccuracyRun(joint, 5000, 400),
         ],
