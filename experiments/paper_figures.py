@@ -970,6 +970,7 @@ def settings(quick: bool) -> dict[str, Any]:
             AccuracyRun(joint, 1000, its),
             AccuracyRun(joint, 5000, 400),
             AccuracyRun(joint, 5000, 1000),
+            AccuracyRun(paper_t, 200, its),
         ],
         "fig5_runs": [
             AccuracyRun(joint, 200, its),
@@ -977,6 +978,7 @@ def settings(quick: bool) -> dict[str, Any]:
             AccuracyRun(paper_t, 200, 600),
             AccuracyRun(joint, 1000, its),
             AccuracyRun(joint, 5000, 400),
+            AccuracyRun(paper_t, 200, its),
         ],
         "sample_counts": [200, 1000, 5000],
         "frame_counts": [25, 50, 100, 200, 300, 400],
