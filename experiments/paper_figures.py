@@ -939,7 +939,7 @@ def settings(quick: bool) -> dict[str, Any]:
     tuned200 = Variant(shrink=4.0, inflation=1.0002)
     paper_t = Variant(method="paper")
     if quick:
-        its = 400  # past the loop closure at ~340
+        its = 360  # just past the loop closure at ~340
         return {
             "iterations": its,
             "log_every": 20,
