@@ -419,12 +419,12 @@ def isam2_incremental(
         t0 = time.process_time()
         isam.update(graph, values)
         times[k] = time.process_time() - t0
+        # Initial guesses for the next pose and new landmarks start from the current estimate of
+        # this pose (not from dead reckoning), as an incremental user would do; untimed.
+        last = isam.calculateEstimatePose2(X(step.pose))
+        estimate[step.pose] = np.array([last.x(), last.y(), last.theta()])
         if k in wanted:
-            current = isam.calculateEstimate()
-            snapshots[k] = landmark_positions(current, landmarks)
-            # Keep dead-reckoning guesses for new poses close to the current estimate.
-            last = current.atPose2(X(step.pose))
-            estimate[step.pose] = np.array([last.x(), last.y(), last.theta()])
+            snapshots[k] = landmark_positions(isam.calculateEstimate(), landmarks)
     for _ in range(extra_updates):
         isam.update()
     return IncrementalResult(isam.calculateEstimate(), times, snapshots)
