@@ -23,17 +23,27 @@ Acceptance (issue 8): ATE ≤ 2x GTSAM, NEES/dof ≤ 2, no non-finite values, 3D
 ≥ 1000 poses, ≥ 500 loop closures, N = 200. Results go to ``experiments/results/`` as
 ``pose_graph_runs.csv``, ``pose_graph_timing.csv`` and ``pose_graph_<scenario>.png``.
 
+Loop closures go through ``--loop-updates`` wrappers (experiment code, not the core):
+``single`` (one ``update``), ``adaptive[strength]`` (default: the map's ``inflation`` set before
+each loop closure from an average of the normalised innovation, see
+:func:`adaptive_inflation_update`) or ``mdaxK`` (K partial updates). The paper method ignores
+inflation, so its rows do not depend on that choice.
+
 Usage::
 
-    .venv/bin/python experiments/pose_graph.py                       # the full acceptance run
-    .venv/bin/python experiments/pose_graph.py --poses 400 --no-timing   # a short run
+    .venv/bin/python experiments/pose_graph.py                  # everything (slow: paper method)
+    .venv/bin/python experiments/pose_graph.py --methods joint --spaces tangent   # the fast part
+    .venv/bin/python experiments/pose_graph.py --poses 300 --no-timing            # a short run
+    .venv/bin/python experiments/pose_graph.py --scenarios --timing-methods joint  # timing only
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import os
 import platform
+import subprocess
 import sys
 import time
 from collections.abc import Callable, Iterable
@@ -216,6 +226,35 @@ def mda_update(n_steps: int) -> UpdateFn:
     return update
 
 
+def adaptive_inflation_update(
+    dof_index: npt.NDArray[np.int64], *, rate: float = 0.05, strength: float = 0.008,
+    max_inflation: float = 1.01,
+) -> UpdateFn:
+    """Loop closures with inflation set from the innovation statistics (experiment wrapper).
+
+    Before each loop closure the normalised innovation ``NIS = e^T (P_h + R)^-1 e / dof`` of the
+    predicted relative pose (``map.marginal(a, b)``) against the measurement is folded into an
+    exponential average (``rate``); the map's ``inflation`` for this update is then
+    ``clip(1 + strength (avg - 1), 1, max_inflation)``: no inflation while the ensemble's
+    spread explains the innovations, more when it is overconfident. Sets the map's
+    ``inflation`` attribute (the core reads it at every loop closure).
+    """
+    state = {"avg": 1.0}
+
+    def update(smap: object, i: int, j: int, z: Array, cov: Array,
+               rng: np.random.Generator) -> None:
+        mean, p_h = smap.marginal(frame(i), frame(j))  # type: ignore[attr-defined]
+        e = tangent_error(mean, z)[dof_index]
+        s = (p_h + cov)[np.ix_(dof_index, dof_index)]
+        nis = float(e @ np.linalg.solve(s, e)) / len(dof_index)
+        state["avg"] = (1.0 - rate) * state["avg"] + rate * nis
+        smap.inflation = float(np.clip(1.0 + strength * (state["avg"] - 1.0),  # type: ignore[attr-defined]
+                                       1.0, max_inflation))
+        plain_update(smap, i, j, z, cov, rng)
+
+    return update
+
+
 def run_map(
     graph: PoseGraph,
     smap: object,
@@ -271,6 +310,8 @@ class Row:
     space: str
     analysis: str
     loop_update: str
+    shrink: float
+    inflation: float
     n_samples: int
     n_poses: int
     n_loops: int
@@ -327,6 +368,8 @@ def evaluate(
     return Row(
         scenario=scenario, method=str(config["method"]), space=str(config["space"]),
         analysis=str(config["analysis"]), loop_update=str(config["loop_update"]),
+        shrink=float("nan") if config["shrink"] is None else float(config["shrink"]),  # type: ignore[arg-type]
+        inflation=float(config["inflation"]),  # type: ignore[arg-type]
         n_samples=int(config["n_samples"]),  # type: ignore[call-overload]
         n_poses=graph.n_poses, n_loops=graph.n_loops, seed=seed,
         ate_map_m=a, ate_gtsam_m=ate_gtsam, ate_dead_reckoning_m=ate_dr,
@@ -360,9 +403,14 @@ def run_config(
     progress: bool = False,
 ) -> tuple[Row, MapRun]:
     """Run and evaluate one configuration of the map on ``graph``."""
-    mda = int(config["loop_update"].split("x")[1]) if str(config["loop_update"]).startswith(
-        "mdax") else 1  # type: ignore[union-attr]
-    loop_update = plain_update if mda == 1 else mda_update(mda)
+    name = str(config["loop_update"])
+    loop_update: UpdateFn = plain_update
+    if name.startswith("mdax"):
+        loop_update = mda_update(int(name[4:]))
+    elif name.startswith("adaptive"):
+        # "adaptive" or "adaptive<strength>", e.g. adaptive0.008
+        strength = float(name[8:]) if len(name) > 8 else 0.008
+        loop_update = adaptive_inflation_update(graph.dof_index, strength=strength)
     smap = map_factory(config)
     t0 = time.perf_counter()
     run = run_map(graph, smap, rng=np.random.default_rng(seed + 1), loop_update=loop_update,
@@ -524,6 +572,18 @@ def _fmt_row(r: Row) -> str:
             + (f"  [{r.error}]" if r.error else ""))
 
 
+def _core_commit() -> str:
+    """Last git commit touching ``service/mcsm/core`` (for the record), or ``"unknown"``."""
+    try:
+        out = subprocess.run(
+            ["git", "log", "-1", "--format=%h", "--", "service/mcsm/core"],
+            cwd=Path(__file__).resolve().parents[1], capture_output=True, text=True, timeout=10,
+            check=False)
+        return out.stdout.strip() or "unknown"
+    except OSError:
+        return "unknown"
+
+
 def main(args: argparse.Namespace) -> list[Row]:
     """Run the experiment described by the parsed ``args``; print and save the figures."""
     out = Path(args.out_dir)
@@ -531,7 +591,8 @@ def main(args: argparse.Namespace) -> list[Row]:
     tag = f"_{args.tag}" if args.tag else ""
     print("settings:", vars(args))
     print(f"numpy {np.__version__}, python {platform.python_version()}, "
-          f"cores {__import__('os').cpu_count()}")
+          f"cores {os.cpu_count()}, load average {os.getloadavg()[0]:.1f}, "
+          f"core commit {_core_commit()}")
     global EXACT_MOMENTS
     EXACT_MOMENTS = bool(args.exact_moments)
     shrink = args.shrink if args.shrink is not None and args.shrink >= 0 else None
@@ -593,8 +654,9 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--shrink", type=float, default=4.0,
                     help="correlation shrink c of the joint update (negative: none)")
     ap.add_argument("--inflation", type=float, default=1.0)
-    ap.add_argument("--loop-updates", nargs="+", default=["single"],
-                    help="'single' or 'mdaxK' (K partial updates per loop closure)")
+    ap.add_argument("--loop-updates", nargs="+", default=["adaptive"],
+                    help="'single', 'mdaxK' (K partial updates per loop closure) or "
+                         "'adaptive[strength]' (inflation from the innovation statistics)")
     ap.add_argument("--exact-moments", action="store_true",
                     help="draw each measurement's N samples with exact mean and covariance")
     ap.add_argument("--no-gtsam", action="store_true")

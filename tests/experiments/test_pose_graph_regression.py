@@ -56,3 +56,23 @@ def test_joint_update_on_short_pose_graph(scenario, poses, seed, map_seed, max_a
     opt = gtsam_optimum(graph, dead_reckoning(graph))
     if opt is not None:
         assert err <= 2.0 * ate(opt, graph.poses_true)  # issue 8's acceptance bound
+
+
+def test_ate_ignores_a_rigid_motion_and_nees_is_one_for_honest_covariances():
+    from experiments.posegraph_sim import compose, perturb, qexp, simulate_3d
+
+    rng = np.random.default_rng(80128)
+    graph = simulate_3d(300, rng=rng)
+    truth = graph.poses_true
+    motion = np.concatenate([[3.0, -1.0, 2.0], qexp(np.array([0.3, -0.2, 1.1]))])
+    moved = compose(np.broadcast_to(motion, truth.shape), truth)
+    assert ate(moved, truth) < 1e-9
+    # estimates = truth perturbed by their own stated covariance: NEES/dof averages to 1
+    n = 4000
+    cov = np.diag([0.04, 0.01, 0.09, 0.0004, 0.0009, 0.0001])
+    est = np.repeat(truth[5:6], n, axis=0)
+    delta = rng.multivariate_normal(np.zeros(6), cov, size=n)
+    means = perturb(est, -delta)  # truth = mean ⊞ delta, to first order
+    per = nees_per_dof(means, np.broadcast_to(cov, (n, 6, 6)), est, np.arange(6))
+    # NEES/dof of one pose is chi2(6)/6: spread sqrt(2/6)
+    assert abs(per.mean() - 1.0) < 4.0 * np.sqrt(2.0 / 6.0) / np.sqrt(n) + 0.01
