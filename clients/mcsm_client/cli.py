@@ -30,9 +30,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from mcsm.connect import add_connection_args, client_kwargs
 from mcsm.errors import McsmError, Timeout
-
-from mcsm_client.connect import add_connection_args, client_kwargs
 
 EXIT_OK, EXIT_REFUSED, EXIT_USAGE, EXIT_TIMEOUT, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
 

@@ -38,9 +38,8 @@ import numpy as np
 import numpy.typing as npt
 import zenoh
 from mcsm import wire
+from mcsm.connect import ZenohConfigLike, client_config
 from mcsm.errors import BadMessage, LimitExceeded, McsmError, Timeout
-
-from mcsm_client.connect import ZenohConfigLike, client_config
 
 log = logging.getLogger(__name__)
 

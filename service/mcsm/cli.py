@@ -34,7 +34,7 @@ log = logging.getLogger("mcsm")
 
 
 def _parser() -> argparse.ArgumentParser:
-    from mcsm_client.connect import add_connection_args
+    from mcsm.connect import add_connection_args
 
     p = argparse.ArgumentParser(prog="mcsm", description=__doc__.split("\n")[0] if __doc__
                                 else None)
@@ -85,8 +85,8 @@ def main(argv: list[str] | None = None) -> int:
 # ------------------------------------------------------------------------------------ serve
 def serve(args: argparse.Namespace) -> int:
     import zenoh
-    from mcsm_client.connect import listen_endpoints, server_config
 
+    from mcsm.connect import listen_endpoints, server_config
     from mcsm.recording import progress_bar
     from mcsm.server import Server, ServerOptions
 

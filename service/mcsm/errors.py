@@ -111,6 +111,20 @@ class LimitExceeded(McsmError):
                          what=what, value=str(value), limit=str(limit))
 
 
+class Busy(LimitExceeded):
+    """The server's request queue is full: nothing was applied; retry later with the same id."""
+
+    def __init__(self, queue_length: int, limit: int) -> None:
+        super().__init__("request queue length", queue_length, limit)
+
+
+class InternalError(McsmError):
+    """An unexpected server-side failure (logged there with its traceback); nothing applied."""
+
+    def __init__(self, reason: str) -> None:
+        super().__init__(f"internal error: {reason}", reason=reason)
+
+
 class Timeout(McsmError):
     """A request got no answer in time (client side)."""
 
@@ -122,5 +136,5 @@ _REGISTRY: dict[str, type[McsmError]] = {
     c.__name__: c
     for c in (McsmError, BadMessage, UnsupportedVersion, InvalidSamples, SampleCountMismatch,
               UnknownFrame, FrameExists, InvalidOperation, NotRelated, NumericalError,
-              LimitExceeded, Timeout)
+              LimitExceeded, Busy, InternalError, Timeout)
 }

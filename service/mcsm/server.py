@@ -4,7 +4,7 @@ Threads and ownership:
 
 * Zenoh callback threads (one per delivery, concurrent) only decode and check the payload with
   :mod:`mcsm.wire` and put the request on a bounded queue. A full queue is answered at once
-  with a ``LimitExceeded`` ("request queue") error: the client may retry later with the same
+  with a ``Busy`` error (a ``LimitExceeded``): the client may retry later with the same
   request id.
 * One worker thread owns every :class:`~mcsm.recording.MapState` and the
   :class:`~mcsm.recording.Recorder`. It takes requests in arrival order, assigns each applied
@@ -33,7 +33,7 @@ import zenoh
 
 from mcsm import wire
 from mcsm.core.smap import StochasticMap
-from mcsm.errors import LimitExceeded, McsmError
+from mcsm.errors import Busy, InternalError, McsmError
 from mcsm.recording import DEFAULT_LRU, MapState, Recorder, RecordingError, decode_input, replay
 
 log = logging.getLogger(__name__)
@@ -214,8 +214,7 @@ class Server:
         try:
             self._queue.put_nowait(item)
         except queue.Full:
-            self._reject(st, query, LimitExceeded("request queue length", self._queue.qsize(),
-                                                  self._queue.maxsize),
+            self._reject(st, query, Busy(self._queue.qsize(), self._queue.maxsize),
                          getattr(req, "request_id", ""), op)
             query.drop()
 
@@ -239,7 +238,7 @@ class Server:
                 self._handle(item)
             except Exception:  # the outermost loop: log, answer, keep serving
                 log.exception("internal error on %s", item.op)
-                self._reply_err(item, McsmError("internal error (see the server log)"))
+                self._reply_err(item, InternalError("see the server log"))
             finally:
                 item.query.drop()
 

@@ -16,8 +16,16 @@ import numpy as np
 import pytest
 import zenoh
 from mcsm import StochasticMap, wire
+from mcsm.connect import (
+    add_connection_args,
+    client_config,
+    client_kwargs,
+    listen_endpoints,
+    server_config,
+)
 from mcsm.core.quat import qexp
 from mcsm.errors import (
+    Busy,
     InvalidSamples,
     LimitExceeded,
     NotRelated,
@@ -28,13 +36,6 @@ from mcsm.errors import (
 from mcsm.recording import replay
 from mcsm.server import Server, ServerOptions
 from mcsm_client.client import MapClient
-from mcsm_client.connect import (
-    add_connection_args,
-    client_config,
-    client_kwargs,
-    listen_endpoints,
-    server_config,
-)
 
 N = 24
 
@@ -234,7 +235,7 @@ def test_connection_args_and_configs(tmp_path: Path) -> None:
 
 def test_full_queue_answers_busy_at_once(tmp_path: Path) -> None:
     """Queue of 1, worker held on the first request: the second waits in the queue, the third
-    is refused at once with LimitExceeded; releasing the worker completes the first two."""
+    is refused at once with Busy (a LimitExceeded); releasing the worker completes the first two."""
     ep = free_endpoint()
     session = zenoh.open(server_config(ep))
     srv = Server(session, ServerOptions(map_options={"n_samples": N}, record=tmp_path / "q.mcap",
@@ -267,14 +268,14 @@ def test_full_queue_answers_busy_at_once(tmp_path: Path) -> None:
             while srv._queue.qsize() < 1 and time.monotonic() < deadline:
                 time.sleep(0.005)  # polling the queue length
             assert srv._queue.qsize() == 1
-            with pytest.raises(LimitExceeded, match="queue"):
+            with pytest.raises(Busy, match="queue"):
                 c.update("e", "f", at(rng, [1, 0, 0]))
             release.set()
             t1.join(20)
             t2.join(20)
             assert {results["first"].seq, results["second"].seq} == {1, 2}
             info = c.info()
-            assert info.seq == 2 and info.rejected_by_error == {"LimitExceeded": 1}
+            assert info.seq == 2 and info.rejected_by_error == {"Busy": 1}
     finally:
         release.set()
         srv.close()
