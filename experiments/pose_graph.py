@@ -331,8 +331,59 @@ class Row:
     error: str
 
 
+def read_toro3d(path: Path, truth_path: Path | None = None) -> PoseGraph:
+    """Read a TORO 3D file (``EDGE3 i j x y z roll pitch yaw`` + 21 noise numbers).
+
+    The rotation is ``Rz(yaw) Ry(pitch) Rx(roll)`` (GTSAM's ``Rot3.Ypr``). The 21 numbers of
+    GTSAM's ``sphere2500.txt`` (``10 ... 100 100 25`` on the diagonal) are **square-root**
+    information: the residuals of the file against ``sphere2500_groundtruth.txt`` have standard
+    deviations 0.10 m and (0.010, 0.010, 0.040) rad, i.e. ``1 / diag``, not ``1 / sqrt(diag)``
+    (0.32 m, 0.1 rad, 0.2 rad). We use ``cov = diag(1 / diag**2)``, the noise the data has.
+    Ground truth: the odometry chain of the noise-free file ``truth_path``. Edges are put in
+    arrival order (by their later pose, odometry first).
+    """
+    def parse(p: Path) -> tuple[npt.NDArray[np.int64], Array, Array]:
+        ij, zs, covs = [], [], []
+        for line in p.read_text().splitlines():
+            t = line.split()
+            if not t or t[0] != "EDGE3":
+                continue
+            v = np.array(t[3:], dtype=float)
+            half = 0.5 * v[3:6]
+            qx = np.array([np.cos(half[0]), np.sin(half[0]), 0.0, 0.0])
+            qy = np.array([np.cos(half[1]), 0.0, np.sin(half[1]), 0.0])
+            qz = np.array([np.cos(half[2]), 0.0, 0.0, np.sin(half[2])])
+            ij.append((int(t[1]), int(t[2])))
+            zs.append(np.concatenate([v[:3], qmul(qmul(qz, qy), qx)]))
+            upper = v[6:27]
+            diag = upper[[0, 6, 11, 15, 18, 20]]
+            covs.append(np.diag(1.0 / diag**2))
+        return np.asarray(ij, dtype=np.int64), np.asarray(zs), np.asarray(covs)
+
+    ij, z, cov = parse(path)
+    order = np.lexsort((ij[:, 1] - ij[:, 0] != 1, ij.max(axis=1)))
+    ij, z, cov = ij[order], z[order], cov[order]
+    is_loop = ij[:, 1] - ij[:, 0] != 1
+    n = int(ij.max()) + 1
+    truth = np.full((n, 7), np.nan)
+    if truth_path is not None:
+        ijt, zt, _ = parse(truth_path)
+        truth[0] = [0, 0, 0, 1.0, 0, 0, 0]
+        by_j = {int(j): zt[k] for k, (i, j) in enumerate(ijt) if j == i + 1}
+        for j in range(1, n):
+            truth[j] = compose(truth[j - 1], by_j[j])
+    return PoseGraph(truth, ij, z, cov, is_loop, False, {"source": str(path)})
+
+
 def make_graph(scenario: str, n_poses: int, seed: int) -> PoseGraph:
-    """The simulated graph of a scenario (``"3d"`` or ``"2d"``)."""
+    """The graph of a scenario: simulated ``"3d"`` / ``"2d"``, or GTSAM's ``"sphere2500"``."""
+    if scenario == "sphere2500":
+        from mcsm_client.datasets import gtsam_data_dir
+
+        data = gtsam_data_dir()
+        if data is None:
+            raise FileNotFoundError("sphere2500 needs the gtsam wheel's Data folder")
+        return read_toro3d(data / "sphere2500.txt", data / "sphere2500_groundtruth.txt")
     rng = np.random.default_rng(seed)
     return simulate_2d(n_poses, rng=rng) if scenario == "2d" else simulate_3d(n_poses, rng=rng)
 
@@ -646,7 +697,8 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--poses", type=int, default=1000, help="poses in the simulated graph")
     ap.add_argument("--seed", type=int, default=8)
     ap.add_argument("--n-samples", type=int, default=200, help="N")
-    ap.add_argument("--scenarios", nargs="*", default=["3d", "2d"], choices=["3d", "2d"],
+    ap.add_argument("--scenarios", nargs="*", default=["3d", "2d"],
+                    choices=["3d", "2d", "sphere2500"],
                     help="scenarios to run (none: timing only)")
     ap.add_argument("--methods", nargs="+", default=["joint", "paper"])
     ap.add_argument("--spaces", nargs="+", default=["tangent", "quaternion"])

@@ -76,3 +76,23 @@ def test_ate_ignores_a_rigid_motion_and_nees_is_one_for_honest_covariances():
     per = nees_per_dof(means, np.broadcast_to(cov, (n, 6, 6)), est, np.arange(6))
     # NEES/dof of one pose is chi2(6)/6: spread sqrt(2/6)
     assert abs(per.mean() - 1.0) < 4.0 * np.sqrt(2.0 / 6.0) / np.sqrt(n) + 0.01
+
+
+def test_sphere2500_reader_matches_ground_truth_and_its_noise():
+    datasets = pytest.importorskip("mcsm_client.datasets")
+    from experiments.pose_graph import read_toro3d
+    from experiments.posegraph_sim import qlog, qmul, relative
+
+    data = datasets.gtsam_data_dir()
+    if data is None or not (data / "sphere2500_groundtruth.txt").is_file():
+        pytest.skip("gtsam's Data folder is not installed")
+    g = read_toro3d(data / "sphere2500.txt", data / "sphere2500_groundtruth.txt")
+    assert (g.n_poses, g.n_loops) == (2500, 2450)
+    truth_rel = relative(g.poses_true[g.edges[:, 0]], g.poses_true[g.edges[:, 1]])
+    q_inv = truth_rel[:, 3:] * np.array([1.0, -1.0, -1.0, -1.0])
+    res = np.concatenate([g.measurements[:, :3] - truth_rel[:, :3],
+                          qlog(qmul(q_inv, g.measurements[:, 3:]))], axis=1)
+    # the covariance we read (1 / diag² of the file's numbers) is the noise the data has
+    stated = np.sqrt(np.diag(g.covariances[0]))
+    n = len(res)
+    np.testing.assert_allclose(res.std(axis=0), stated, rtol=4.0 / np.sqrt(2.0 * n) + 0.02)
