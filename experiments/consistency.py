@@ -349,73 +349,99 @@ def plot(rows: list[dict[str, Any]], results: Path, n_iterations: int) -> list[P
 # ---------------------------------------------------------------------------- Victoria Park
 
 
-def run_victoria(n_samples: int, variant: Variant, seed: int, max_poses: int | None,
-                 results: Path, log_every: int = 500) -> dict[str, Any]:
-    """Victoria Park (``gtsam:victoria_park.txt``), bounded map, vs GTSAM's batch optimum.
-
-    Frames ``x{i}`` / ``l{j}`` (dataset ids); odometry sampled with its covariance over the
-    body-frame tangent (GTSAM's convention), sightings as Cartesian points. After each step the
-    previous pose is removed (pose 0 kept as the anchor). The reference is Levenberg–Marquardt on
-    the full graph (Pose2 between factors + Cartesian point factors), started from an iSAM2 pass.
-    """
+def _victoria_problem(max_poses: int | None) -> tuple[Any, str]:
     from mcsm_client.datasets import read_dataset
-    from mcsm_client.sampling import sample_planar, sample_point
 
     from experiments.baselines import gtsam_slam as gs
 
     ds = read_dataset("gtsam:victoria_park.txt")
-    problem = gs.problem_from_dataset(ds, max_poses=max_poses)
     tag = "full" if max_poses is None else f"P{max_poses}"
+    return gs.problem_from_dataset(ds, max_poses=max_poses), tag
 
-    # Reference: iSAM2 pass, then batch LM from it (cached per length).
-    ref_path = results / f"victoria_reference_{tag}.csv"
-    ref: dict[int, Array] = {}
-    if ref_path.exists():
-        with open(ref_path, newline="") as f:
-            for r in csv.DictReader(f):
-                ref[int(r["landmark"])] = np.array([float(r["x"]), float(r["y"])])
-        print(f"victoria: reference landmarks from {ref_path}", flush=True)
-    else:
-        t0 = time.perf_counter()
-        inc = gs.isam2_incremental(problem)
-        t_isam = time.perf_counter() - t0
-        graph, _ = gs.build_graph_2d(problem)
-        opt = gs.batch_optimum(graph, inc.estimate)
-        lm_ids = sorted({s.landmark for st in problem.steps for s in st.sightings})
-        ref = gs.landmark_positions(opt, lm_ids)
-        isam_lm = gs.landmark_positions(inc.estimate, lm_ids)
-        d = np.array([ref[j] - isam_lm[j] for j in lm_ids])
-        print(f"victoria: iSAM2 {t_isam:.1f} s; LM from iSAM2: error "
-              f"{graph.error(inc.estimate):.1f} -> {graph.error(opt):.1f}; iSAM2 landmarks vs "
-              f"LM RMS {np.sqrt(np.mean(np.sum(d**2, axis=1))):.3f} m", flush=True)
-        ref_path.parent.mkdir(parents=True, exist_ok=True)
-        with open(ref_path, "w", newline="") as f:
-            w = csv.writer(f)
-            w.writerow(["landmark", "x", "y"])
-            for j in lm_ids:
-                w.writerow([j, repr(float(ref[j][0])), repr(float(ref[j][1]))])
 
-    ref_ids = np.array(sorted(ref))
-    ref_xy = np.array([ref[j] for j in ref_ids])
+def _read_xy(path: Path, cols: tuple[str, str] = ("x", "y")) -> dict[int, Array]:
+    out: dict[int, Array] = {}
+    with open(path, newline="") as f:
+        for r in csv.DictReader(f):
+            if r[cols[0]] not in ("", "nan"):
+                out[int(r["landmark"])] = np.array([float(r[cols[0]]), float(r[cols[1]])])
+    return out
 
-    def score(est: dict[int, Array]) -> tuple[float, int]:
-        ids = [j for j in ref_ids if j in est]
-        if not ids:
-            return math.nan, 0
-        d = np.array([est[j] - ref[j] for j in ids])
-        return float(np.sqrt(np.mean(np.sum(d**2, axis=1)))), len(ids)
 
-    # EKF-SLAM on the same readings.
+def _ekf_pass(problem: Any) -> tuple[EkfSlam, dict[int, Array]]:
+    """EKF-SLAM over a PlanarProblem; also returns the filtered pose after each step."""
     ekf = EkfSlam(np.eye(3), np.eye(2))
+    poses: dict[int, Array] = {}
     for st in problem.steps:
         if st.odometry is not None:
             ekf.predict(st.odometry.delta, st.odometry.cov)
         for s in st.sightings:
             ekf.observe(s.landmark, s.xy, s.cov)
-    ids, means, _ = ekf.landmark_estimates()
-    ekf_rms, _ = score({int(j): m for j, m in zip(ids, means, strict=True)})
+        poses[st.pose] = ekf.pose
+    return ekf, poses
 
-    # Dead reckoning (landmarks from first sighting).
+
+def victoria_reference(max_poses: int | None, results: Path, init: str = "isam2") -> Path:
+    """GTSAM batch optimum of Victoria Park on the Cartesian model, cached as a CSV.
+
+    ``init="isam2"``: Levenberg–Marquardt started from an incremental iSAM2 pass (the issue's
+    prescription; dead reckoning alone falls into a local minimum). ``init="ekf"``: LM started from
+    the EKF-SLAM filtered trajectory and final landmarks (a cheaper fallback, labelled as such).
+    """
+    import gtsam
+    from gtsam.symbol_shorthand import L, X
+
+    from experiments.baselines import gtsam_slam as gs
+
+    problem, tag = _victoria_problem(max_poses)
+    path = results / f"victoria_reference_{init}_{tag}.csv"
+    if path.exists():
+        return path
+    graph, initial = gs.build_graph_2d(problem)
+    t0 = time.perf_counter()
+    if init == "isam2":
+        start = gs.isam2_incremental(problem).estimate
+    else:
+        ekf, poses = _ekf_pass(problem)
+        start = gtsam.Values(initial)
+        for i, p in poses.items():
+            start.update(X(i), gtsam.Pose2(float(p[0]), float(p[1]), float(p[2])))
+        ids, means, _ = ekf.landmark_estimates()
+        for j, m in zip(ids, means, strict=True):
+            start.update(L(int(j)), gtsam.Point2(float(m[0]), float(m[1])))
+    t_init = time.perf_counter() - t0
+    opt = gs.batch_optimum(graph, start)
+    lm_ids = sorted({s.landmark for st in problem.steps for s in st.sightings})
+    ref = gs.landmark_positions(opt, lm_ids)
+    print(f"victoria reference ({init}, {tag}): init {t_init:.0f} s, LM error "
+          f"{graph.error(start):.1f} -> {graph.error(opt):.1f}", flush=True)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["landmark", "x", "y"])
+        for j in lm_ids:
+            w.writerow([j, repr(float(ref[j][0])), repr(float(ref[j][1]))])
+    return path
+
+
+def run_victoria(n_samples: int, variant: Variant, seed: int, max_poses: int | None,
+                 results: Path, log_every: int = 1000) -> Path:
+    """Victoria Park (``gtsam:victoria_park.txt``) through a bounded map; estimates to a CSV.
+
+    Frames ``x{i}`` / ``l{j}`` (dataset ids); odometry sampled with its covariance over the
+    body-frame tangent (GTSAM's convention), sightings as Cartesian points. After each step the
+    previous pose is removed (pose 0 kept as the anchor). The landmark means of the map, of the
+    EKF-SLAM and of dead reckoning (first sighting) on the same readings are written to
+    ``victoria_estimates_<variant>_N<N>_s<seed>_<length>.csv`` with run facts in
+    ``victoria_runs.csv``; :func:`score_victoria` compares them with the GTSAM references.
+    """
+    from mcsm_client.sampling import sample_planar, sample_point
+
+    problem, tag = _victoria_problem(max_poses)
+    ekf, _ = _ekf_pass(problem)
+    ekf_ids, ekf_means, _ = ekf.landmark_estimates()
+    ekf_est = {int(j): m for j, m in zip(ekf_ids, ekf_means, strict=True)}
+
     pose = np.zeros(3)
     dr: dict[int, Array] = {}
     for st in problem.steps:
@@ -428,9 +454,7 @@ def run_victoria(n_samples: int, variant: Variant, seed: int, max_poses: int | N
                 c, s_ = np.cos(pose[2]), np.sin(pose[2])
                 dr[s.landmark] = pose[:2] + np.array([c * s.xy[0] - s_ * s.xy[1],
                                                       s_ * s.xy[0] + c * s.xy[1]])
-    dr_rms, _ = score(dr)
 
-    # The Monte Carlo map.
     smap = variant.build(n_samples)
     rng = np.random.default_rng(seed)
     anchor = f"x{problem.steps[0].pose}"
@@ -438,7 +462,6 @@ def run_victoria(n_samples: int, variant: Variant, seed: int, max_poses: int | N
     n_updates = 0
     t0 = time.perf_counter()
     error = ""
-    curve: list[tuple[int, float]] = []
     try:
         for k, st in enumerate(problem.steps):
             cur = f"x{st.pose}"
@@ -456,41 +479,66 @@ def run_victoria(n_samples: int, variant: Variant, seed: int, max_poses: int | N
                 smap.remove(prev)
             prev = cur
             if log_every and k % log_every == 0 and k > 0:
-                est = _map_landmarks(smap, anchor, ref_ids)
-                rms_k, n_k = score(est)
-                curve.append((k, rms_k))
-                print(f"  victoria step {k}/{len(problem.steps)}: {smap.n_frames} frames, "
-                      f"RMS vs LM {rms_k:.2f} m over {n_k}, "
-                      f"{time.perf_counter() - t0:.0f} s", flush=True)
+                print(f"  victoria {variant.name} N={n_samples} step {k}/{len(problem.steps)}: "
+                      f"{smap.n_frames} frames, {time.perf_counter() - t0:.0f} s", flush=True)
     except McsmError as err:
         error = f"{type(err).__name__}: {err}"
     elapsed = time.perf_counter() - t0
-    est = _map_landmarks(smap, anchor, ref_ids)
-    finite = bool(all(np.isfinite(v).all() for v in est.values())) and not error
-    for f in smap.frames():
-        if not np.isfinite(smap.query(anchor, f)).all():
-            finite = False
-    mc_rms, n_lm = score(est)
-    out = {"dataset": "victoria_park.txt", "length": tag, "variant": variant.name,
-           "n_samples": n_samples, "seed": seed, "steps": len(problem.steps),
-           "updates": n_updates, "frames_at_end": smap.n_frames, "finite": finite,
-           "landmarks_scored": n_lm, "mc_rms_vs_lm_m": mc_rms, "ekf_rms_vs_lm_m": ekf_rms,
-           "dead_reckoning_rms_vs_lm_m": dr_rms, "seconds": elapsed,
-           "ms_per_update": 1e3 * elapsed / max(n_updates, 1), "error": error,
-           "reference_landmarks": int(ref_xy.shape[0])}
+    ids = sorted(set(dr))
+    mc = _map_landmarks(smap, anchor, ids)
+    finite = not error and all(np.isfinite(smap.query(anchor, f)).all() for f in smap.frames())
+    name = f"victoria_estimates_{variant.name}_N{n_samples}_s{seed}_{tag}.csv"
+    with open(results / name, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["landmark", "mc_x", "mc_y", "ekf_x", "ekf_y", "dr_x", "dr_y"])
+        for j in ids:
+            row = [j]
+            for est in (mc, ekf_est, dr):
+                v = est.get(j)
+                row += ["nan", "nan"] if v is None else [repr(float(v[0])), repr(float(v[1]))]
+            w.writerow(row)
+    out = {"estimates": name, "variant": variant.name, "n_samples": n_samples, "seed": seed,
+           "length": tag, "steps": len(problem.steps), "updates": n_updates,
+           "frames_at_end": smap.n_frames, "finite": finite, "seconds": round(elapsed, 1),
+           "ms_per_update": round(1e3 * elapsed / max(n_updates, 1), 2), "error": error}
     path = results / "victoria_runs.csv"
     new = not path.exists()
     with open(path, "a", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(out))
+        w2 = csv.DictWriter(f, fieldnames=list(out))
         if new:
-            w.writeheader()
-        w.writerow(out)
-    with open(results / f"victoria_curve_{variant.name}_N{n_samples}_s{seed}_{tag}.csv", "w",
-              newline="") as f:
-        w2 = csv.writer(f)
-        w2.writerow(["step", "rms_vs_lm_m"])
-        w2.writerows(curve)
-    return out
+            w2.writeheader()
+        w2.writerow(out)
+    print("victoria run:", out, flush=True)
+    return results / name
+
+
+def score_victoria(results: Path, file: Any = sys.stdout) -> None:
+    """Landmark RMS of every Victoria estimates file against every cached GTSAM reference."""
+    refs = sorted(results.glob("victoria_reference_*.csv"))
+    ests = sorted(results.glob("victoria_estimates_*.csv"))
+    if not ests:
+        return
+    print("\nVictoria Park: landmark RMS (m) against GTSAM's batch LM optimum "
+          "(Cartesian model)", file=file)
+    print("| estimates | reference | map | EKF-SLAM | dead reckoning | landmarks |", file=file)
+    print("|---|---|---|---|---|---|", file=file)
+    for e in ests:
+        length = e.stem.rsplit("_", 1)[1]
+        for r in refs:
+            if not r.stem.endswith("_" + length):
+                continue
+            ref = _read_xy(r)
+            row = []
+            n = 0
+            for cols in (("mc_x", "mc_y"), ("ekf_x", "ekf_y"), ("dr_x", "dr_y")):
+                est = _read_xy(e, cols)
+                ids = [j for j in ref if j in est]
+                n = max(n, len(ids))
+                d = np.array([est[j] - ref[j] for j in ids]) if ids else np.zeros((0, 2))
+                row.append(float(np.sqrt(np.mean(np.sum(d**2, axis=1)))) if ids else math.nan)
+            print(f"| {e.stem.removeprefix('victoria_estimates_')} | "
+                  f"{r.stem.removeprefix('victoria_reference_')} | {_fmt(row[0])} | "
+                  f"{_fmt(row[1])} | {_fmt(row[2])} | {n} |", file=file)
 
 
 def _map_landmarks(smap: StochasticMap, anchor: str, ids: Iterable[int]) -> dict[int, Array]:
@@ -520,6 +568,7 @@ class Settings:
     victoria_variants: tuple[str, ...] = ("ensrf",)
     victoria_max_poses: int | None = None
     victoria_seeds: tuple[int, ...] = (7001,)
+    victoria_reference: tuple[str, ...] = ("isam2",)
     force: bool = False
     report_only: bool = False
     deadline_s: float | None = None
@@ -561,12 +610,14 @@ def main(settings: Settings, results: Path = RESULTS) -> bool:
                               f"NEES {_fmt(last['nees_per_dof'])} "
                               f"[{time.perf_counter() - t0:.0f} s] {last['error']}", flush=True)
         if settings.victoria:
+            for init in settings.victoria_reference:
+                print("victoria reference:",
+                      victoria_reference(settings.victoria_max_poses, results, init), flush=True)
             for n in settings.victoria_n_samples:
                 for name in settings.victoria_variants:
                     for seed in settings.victoria_seeds:
-                        out = run_victoria(n, VARIANTS[name], seed, settings.victoria_max_poses,
-                                           results)
-                        print("victoria:", out, flush=True)
+                        run_victoria(n, VARIANTS[name], seed, settings.victoria_max_poses,
+                                     results)
     rows = read_rows(results)
     if not rows:
         print(f"no scenario run files under {results / 'runs'}")
@@ -587,8 +638,11 @@ def main(settings: Settings, results: Path = RESULTS) -> bool:
 def _print_victoria(results: Path) -> None:
     vp = results / "victoria_runs.csv"
     if vp.exists():
-        print("\nVictoria Park runs (landmark RMS vs GTSAM LM optimum):")
+        print("\nVictoria Park runs:")
         print(vp.read_text())
+    score_victoria(results)
+    with open(results / "victoria_summary.md", "w") as f:
+        score_victoria(results, f)
 
 
 def parse_args(argv: Sequence[str] | None = None) -> tuple[Settings, Path]:
@@ -610,6 +664,9 @@ def parse_args(argv: Sequence[str] | None = None) -> tuple[Settings, Path]:
     p.add_argument("--victoria-variants", nargs="+", choices=sorted(VARIANTS))
     p.add_argument("--victoria-max-poses", type=int)
     p.add_argument("--victoria-seeds", type=int, nargs="+")
+    p.add_argument("--victoria-reference", nargs="*", choices=("isam2", "ekf"),
+                   help="GTSAM references to compute first (LM from iSAM2 and/or from the EKF); "
+                        "give none to run the map only and score later")
     p.add_argument("--force", action="store_true", help="re-run runs whose CSV exists")
     p.add_argument("--report-only", action="store_true", help="only rebuild tables and plots")
     p.add_argument("--deadline-s", type=float, help="stop each run after this wall time")
@@ -623,7 +680,8 @@ def parse_args(argv: Sequence[str] | None = None) -> tuple[Settings, Path]:
                       ("variants", "variants"), ("seeds", "seeds"),
                       ("victoria_n_samples", "victoria_n_samples"),
                       ("victoria_variants", "victoria_variants"),
-                      ("victoria_seeds", "victoria_seeds")):
+                      ("victoria_seeds", "victoria_seeds"),
+                      ("victoria_reference", "victoria_reference")):
         if getattr(a, flag) is not None:
             upd[key] = tuple(getattr(a, flag))
     if a.log_every is not None:
