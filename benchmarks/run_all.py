@@ -14,7 +14,7 @@ experiments/consistency.py             ``--quick`` (500 iterations, N 200/1000, 
 experiments/pose_graph.py              400 poses (3D and 2D), loop-closure timing M 500/1000
 experiments/paper_figures.py           ``--quick``: 360 iterations, N 200/1000, Fig. 6 N 200/1000
 experiments/realdata.py                ``--quick``: Victoria Park first 1000 poses, N = 200
-experiments/eval3d.py                  ``--quick``: 400-pose 3D helix, N = 200
+experiments/eval3d.py                  ``--quick``: 200-pose 3D helix, N = 100
 =====================================  =====================================================
 
 Each step has a time limit (the sum stays under the 15-minute budget on a 2-core machine); a step

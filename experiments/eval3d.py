@@ -19,7 +19,7 @@ estimator) and ``eval3d.png`` (top view of the trajectories and ATE/time bars).
 
 Usage::
 
-    .venv/bin/python experiments/eval3d.py --quick     # 400 poses (make bench)
+    .venv/bin/python experiments/eval3d.py --quick     # 200 poses, N = 100 (make bench)
     .venv/bin/python experiments/eval3d.py             # 500 poses
 """
 
@@ -233,13 +233,14 @@ def plot(path: Path, rows: list[dict[str, Any]], curves: dict[str, Array], n_sam
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--quick", action="store_true", help="400 poses (make bench)")
+    parser.add_argument("--quick", action="store_true", help="200 poses, N = 100 (make bench)")
     parser.add_argument("--poses", type=int, default=None)
-    parser.add_argument("--n-samples", type=int, default=200)
+    parser.add_argument("--n-samples", type=int, default=None, help="default 200 (quick: 100)")
     parser.add_argument("--seed", type=int, default=SEED)
     parser.add_argument("--results", type=Path, default=ROOT / "experiments" / "results")
     args = parser.parse_args()
-    n_poses = args.poses or (400 if args.quick else 500)
+    n_poses = args.poses or (200 if args.quick else 500)
+    n_samples = args.n_samples or (100 if args.quick else 200)
     all_configs = [
         ("joint", "tangent"),
         ("joint", "quaternion"),
