@@ -250,7 +250,7 @@ if __name__ == "__main__":
     out_rows = main(
         args.results,
         n_poses=n_poses,
-        n_samples=args.n_samples,
+        n_samples=n_samples,
         configs=all_configs,
         seed=args.seed,
     )
