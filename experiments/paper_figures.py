@@ -948,7 +948,7 @@ def settings(quick: bool) -> dict[str, Any]:
                 AccuracyRun(joint, 1000, its),
                 AccuracyRun(paper_t, 200, its),
             ],
-            "fig5_runs": [AccuracyRun(joint, 200, its), AccuracyRun(paper_t, 200, its)],
+            "fig5_runs": [AccuracyRun(joint, 200, its)],
             "sample_counts": [200, 1000],
             "frame_counts": [25, 50, 100, 200, 400],
             "updates_per_point": 3,
