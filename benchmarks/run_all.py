@@ -12,7 +12,7 @@ benchmarks/service_throughput.py       its own ``--quick`` if it has one
 benchmarks/bench_oracle.py             2 seeds, N 200/1000
 experiments/consistency.py             ``--quick`` (500 iterations, N 200/1000, 4 variants)
 experiments/pose_graph.py              400 poses (3D and 2D), loop-closure timing M 500/1000
-experiments/paper_figures.py           ``--quick``: 360 iterations, N 200/1000, Fig. 6 N 200/1000
+experiments/paper_figures.py           ``--quick``: 360 its, N 200/1000 (Fig. 5 N 200), Fig. 6
 experiments/realdata.py                ``--quick``: Victoria Park first 1000 poses, N = 200
 experiments/eval3d.py                  ``--quick``: 200-pose 3D helix, N = 100
 =====================================  =====================================================
