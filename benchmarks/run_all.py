@@ -10,8 +10,8 @@ script                                 quick settings
 benchmarks/bench_core.py               its own ``--quick`` if it has one
 benchmarks/service_throughput.py       its own ``--quick`` if it has one
 benchmarks/bench_oracle.py             2 seeds, N 200/1000
-experiments/consistency.py             ``--quick`` (500 iterations, N 200/1000, 4 variants)
-experiments/pose_graph.py              400 poses (3D and 2D), loop-closure timing M 500/1000
+experiments/consistency.py             ``--quick`` variants, 360 iterations, N = 200
+experiments/pose_graph.py              300 poses (3D and 2D), loop-closure timing M = 500
 experiments/paper_figures.py           ``--quick``: 360 its, N 200/1000 (Fig. 5 N 200), Fig. 6
 experiments/realdata.py                ``--quick``: Victoria Park first 1000 poses, N = 200
 experiments/eval3d.py                  ``--quick``: 200-pose 3D helix, N = 100
@@ -69,7 +69,7 @@ class Step:
     quick_if_supported: bool = False
 
 
-_POSE_GRAPH_QUICK = ("--poses", "400", "--timing-m", "500", "1000", "--timing-n", "200",
+_POSE_GRAPH_QUICK = ("--poses", "300", "--timing-m", "500", "--timing-n", "200",
                      "--timing-repeats", "3", "--out-dir", str(QUICK))  # fmt: skip
 
 STEPS = [
@@ -78,7 +78,8 @@ STEPS = [
     Step("bench_oracle", "benchmarks/bench_oracle.py", ("--seeds", "2", "--sizes", "200", "1000"),
          60.0),
     Step("consistency", "experiments/consistency.py",
-         ("--quick", "--results", str(QUICK / "consistency")), 170.0),
+         ("--quick", "--iterations", "360", "--n-samples", "200", "--results",
+          str(QUICK / "consistency")), 170.0),
     Step("pose_graph", "experiments/pose_graph.py", _POSE_GRAPH_QUICK, 120.0),
     Step("paper_figures", "experiments/paper_figures.py", ("--quick", "--results", str(QUICK)),
          170.0),
