@@ -101,10 +101,28 @@ ACCEPT_VARIANTS = {1000: ("ensrf", "ensrf-shrink4"),
 
 CSV_FIELDS = ["variant", "n_samples", "sigma_theta_deg", "seed", "iteration", "rms_m",
               "nees_per_dof", "n_landmarks", "ekf_rms_m", "ekf_nees_per_dof", "elapsed_s",
-              "error"]
+              "error", "core"]
 
 
 # ---------------------------------------------------------------------------- runs
+
+
+def core_revision() -> str:
+    """Last git commit touching ``service/mcsm/core`` (``+dirty`` if it has local changes)."""
+    import subprocess
+
+    root = Path(__file__).resolve().parent.parent
+    try:
+        rev = subprocess.run(["git", "log", "-1", "--format=%h", "--", "service/mcsm/core"],
+                             cwd=root, capture_output=True, text=True, timeout=10).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "service/mcsm/core"],
+                               cwd=root, capture_output=True, text=True, timeout=10).stdout
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return (rev or "unknown") + ("+dirty" if dirty.strip() else "")
+
+
+CORE_REVISION = core_revision()
 
 
 def log_iterations(n_iterations: int, every: int) -> list[int]:
@@ -152,7 +170,8 @@ def run_one(variant: Variant, n_samples: int, scenario: Scenario, seed: int,
     rows: list[dict[str, Any]] = []
     t0 = time.perf_counter()
     base = {"variant": variant.name, "n_samples": n_samples,
-            "sigma_theta_deg": scenario.config.sigma_theta_deg, "seed": seed}
+            "sigma_theta_deg": scenario.config.sigma_theta_deg, "seed": seed,
+            "core": CORE_REVISION}
 
     class _Stop(Exception):
         pass
