@@ -48,7 +48,13 @@ def _parser() -> argparse.ArgumentParser:
                    help="case II update (default joint)")
     s.add_argument("--space", choices=("tangent", "quaternion"), default="tangent",
                    help="vector space of the merges (default tangent)")
-    s.add_argument("--analysis", choices=("ensrf", "denkf", "enkf"), default="ensrf")
+    s.add_argument("--analysis", choices=("ensrf", "denkf", "enkf"), default="ensrf",
+                   help="analysis rule of the joint update (default ensrf, square root)")
+    s.add_argument("--shrink", type=float, default=None, metavar="C",
+                   help="correlation shrink constant of the joint update (default off)")
+    s.add_argument("--inflation", type=_inflation, default=1.0, metavar="F|adaptive",
+                   help="anomaly inflation per loop closure: a factor in [1, 2) or 'adaptive' "
+                        "(default 1, none)")
     s.add_argument("--record", type=Path, default=None, metavar="PATH.mcap",
                    help="new recording file (default recordings/run-<UTC time>.mcap)")
     s.add_argument("--restore", type=Path, default=None, metavar="PATH.mcap",
@@ -83,6 +89,16 @@ def main(argv: list[str] | None = None) -> int:
 
 
 # ------------------------------------------------------------------------------------ serve
+def _inflation(text: str) -> float | str:
+    if text == "adaptive":
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected a number in [1, 2) or 'adaptive', got {text!r}") from None
+
+
 def serve(args: argparse.Namespace) -> int:
     import zenoh
 
@@ -106,7 +122,8 @@ def serve(args: argparse.Namespace) -> int:
     opts = ServerOptions(
         maps=list(dict.fromkeys(maps)), prefix=args.prefix,
         map_options={"n_samples": args.samples, "method": args.method, "space": args.space,
-                     "analysis": args.analysis},
+                     "analysis": args.analysis, "shrink": args.shrink,
+                     "inflation": args.inflation},
         record=record, restore=args.restore, checkpoint_every=max(1, args.checkpoint_every),
         queue_size=args.queue_size, fsync=args.fsync)
     try:

@@ -238,3 +238,29 @@ def test_planar_and_3d_loops_past_180_degrees_stay_finite(method: str, space: st
         assert np.all(np.isfinite(cov)) and np.all(np.linalg.eigvalsh(cov) > -1e-12)
         if planar:
             assert np.allclose(m.query("x0", f"x{n_steps // 2}")[:, 2], 0.0, atol=1e-9)
+
+
+def test_adaptive_inflation_reacts_to_surprising_loop_closures_only() -> None:
+    """NIS ≈ 1 keeps the factor at 1; innovations far beyond the predicted spread raise it."""
+    rng = np.random.default_rng(310)
+    n = 400
+
+    def build() -> StochasticMap:
+        m = StochasticMap(n, inflation="adaptive")
+        r = np.random.default_rng(311)
+        for k in range(8):
+            m.update(f"x{k}", f"x{k + 1}", random_at(r, n, kind="cloud", t_sigma=0.05,
+                                                    r_sigma=0.01))
+        return m
+
+    honest, surprised = build(), build()
+    for k in range(3):
+        honest.update("x0", f"x{5 + k}", honest.query("x0", f"x{5 + k}")[rng.permutation(n)])
+        far = surprised.query("x0", f"x{5 + k}")[rng.permutation(n)]
+        far[:, :3] += 2.0  # 2 m off: tens of predicted σ
+        surprised.update("x0", f"x{5 + k}", far)
+    assert honest._nis_avg < 1.2
+    assert surprised._nis_avg > 5.0
+    assert honest.state_digest() != surprised.state_digest()
+    with pytest.raises(InvalidOperation):
+        StochasticMap(n, inflation="sometimes")

@@ -24,7 +24,7 @@ from collections.abc import Callable
 import numpy as np
 import numpy.typing as npt
 
-from mcsm.core.at import _scaled_eigh, sample_cov, sym_sqrt
+from mcsm.core.at import sample_cov, scaled_eigh, sym_sqrt
 
 Array = npt.NDArray[np.float64]
 Rule = Callable[[Array, Array, Array], Array]
@@ -39,7 +39,7 @@ def _moments(yc: Array, z: Array) -> tuple[Array, Array, Array]:
 
 def _pinv_parts(s: Array) -> tuple[Array, Array, Array, Array]:
     """Scale vector d, eigenvectors v, and the kept eigenvalues' inverse and inverse root."""
-    d, lam, v = _scaled_eigh(s)
+    d, lam, v = scaled_eigh(s)
     live = lam > 0.0
     safe = np.where(live, lam, 1.0)
     return d, v, np.where(live, 1.0 / safe, 0.0), np.where(live, 1.0 / np.sqrt(safe), 0.0)
@@ -78,14 +78,14 @@ def ensrf(yc: Array, y_mean: Array, z: Array) -> Array:
 RULES: dict[str, Rule] = {"ensrf": ensrf, "denkf": denkf, "enkf": enkf}
 
 
-def shrink_correlations(c_xy_t: Array, state: Array, yc: Array, c: float) -> Array:
+def shrink_correlations(c_xy_t: Array, var_x: Array, yc: Array, c: float) -> Array:
     """Sampling-error correction of cross-covariances (after Anderson 2012).
 
     Multiplies each entry by ``max(0, 1 − c (1 − r²)² / (N r²))``, ``r`` its sample
-    correlation. ``c_xy_t`` ``(M, p, d)``, ``state`` ``(M, N, d)``, ``yc`` ``(N, p)``.
+    correlation. ``c_xy_t`` ``(M, p, d)``, ``var_x`` ``(M, d)`` the state's sample variances,
+    ``yc`` ``(N, p)``.
     """
     n = yc.shape[0]
-    var_x = state.var(axis=1, ddof=1)  # (M, d)
     var_y = np.einsum("np,np->p", yc, yc) / (n - 1)
     denom = var_y[None, :, None] * var_x[:, None, :]
     with np.errstate(invalid="ignore", divide="ignore"):

@@ -135,7 +135,7 @@ def sample_cov(a: Array, b: Array | None = None) -> Array:
     return np.swapaxes(ac, -1, -2) @ bc / (n - 1)
 
 
-def _scaled_eigh(s: Array) -> tuple[Array, Array, Array]:
+def scaled_eigh(s: Array) -> tuple[Array, Array, Array]:
     """Eigen-decompose ``D s D`` with ``D = diag(1/sqrt(diag s))`` (0 for dead dimensions).
 
     Returns (d, lam, v): the scale vector, eigenvalues with truncated ones set to 0, vectors.
@@ -158,7 +158,7 @@ def _apply_fn(d: Array, lam: Array, v: Array, f: Array) -> Array:
 
 def scaled_pinv(s: Array) -> Array:
     """Scaled, truncated pseudo-inverse of symmetric PSD matrices ``(..., p, p)``."""
-    d, lam, v = _scaled_eigh(s)
+    d, lam, v = scaled_eigh(s)
     with np.errstate(divide="ignore"):
         f = np.where(lam > 0.0, 1.0 / np.where(lam > 0.0, lam, 1.0), 0.0)
     return _apply_fn(d, lam, v, f)

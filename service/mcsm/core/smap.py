@@ -41,6 +41,8 @@ from mcsm.core.at import (
     mean_and_cov,
     merge_correlated,
     relative,
+    sample_cov,
+    scaled_eigh,
     to_space,
 )
 from mcsm.core.quat import qconj, qrot
@@ -59,6 +61,8 @@ Method = Literal["joint", "paper"]
 
 FRAME_NAME_RE = re.compile(r"^[A-Za-z0-9_.:+\-]{1,128}$")
 METHODS = ("joint", "paper")
+# adaptive inflation (issue 8): running-average rate, strength, largest factor
+ADAPT_RATE, ADAPT_STRENGTH, ADAPT_MAX = 0.05, 0.008, 1.01
 SPACES = ("tangent", "quaternion")
 
 
@@ -126,6 +130,10 @@ class StochasticMap:
         see :mod:`mcsm.core.analysis`
     shrink : correlation-shrink constant c (Anderson 2012) for the cross-covariances, or None
     inflation : multiplicative inflation of every edge's anomalies after each loop closure
+        (a number in [1, 2)), or ``"adaptive"``: a factor driven by a running average of the
+        normalised innovation squared per dof (NIS) of the loop closures,
+        ``λ = clip(1 + 0.008 (avg − 1), 1, 1.01)``, ``avg ← 0.95 avg + 0.05 NIS``; an honest
+        map has NIS ≈ 1 and so gets no inflation (measured on 3-D pose graphs, issue 8)
     """
 
     def __init__(
@@ -136,7 +144,7 @@ class StochasticMap:
         space: str = "tangent",
         analysis: str = "ensrf",
         shrink: float | None = None,
-        inflation: float = 1.0,
+        inflation: float | str = 1.0,
     ) -> None:
         if not isinstance(n_samples, int) or isinstance(n_samples, bool) or n_samples < 2:
             raise InvalidOperation(f"n_samples must be an integer >= 2, got {n_samples!r}")
@@ -148,14 +156,17 @@ class StochasticMap:
             raise InvalidOperation(f"analysis must be one of {tuple(an.RULES)}, got {analysis!r}")
         if shrink is not None and not (np.isfinite(shrink) and shrink >= 0):
             raise InvalidOperation(f"shrink must be None or >= 0, got {shrink!r}")
-        if not (np.isfinite(inflation) and 1.0 <= inflation < 2.0):
-            raise InvalidOperation(f"inflation must be in [1, 2), got {inflation!r}")
+        if inflation != "adaptive" and not (
+                isinstance(inflation, (int, float)) and np.isfinite(inflation)
+                and 1.0 <= inflation < 2.0):
+            raise InvalidOperation(f"inflation must be in [1, 2) or 'adaptive', got {inflation!r}")
         self.n_samples = n_samples
         self.method: Method = method  # type: ignore[assignment]
         self.space: Space = space  # type: ignore[assignment]
         self.analysis = analysis
         self.shrink = None if shrink is None else float(shrink)
-        self.inflation = float(inflation)
+        self.inflation: float | str = inflation if inflation == "adaptive" else float(inflation)
+        self._nis_avg = 1.0  # running NIS average of adaptive inflation (part of the state)
         self._comps: dict[int, _Component] = {}
         self._where: dict[str, int] = {}  # frame -> component id
         self._order: dict[str, None] = {}  # frames in insertion order
@@ -211,6 +222,8 @@ class StochasticMap:
         """SHA-256 (hex) of the whole state: options, components, names, flags, sample bytes."""
         h = hashlib.sha256()
         h.update(json.dumps(self.options(), sort_keys=True).encode())
+        if self.inflation == "adaptive":
+            h.update(np.float64(self._nis_avg).tobytes())
         h.update(json.dumps(list(self._order)).encode())
         for cid, c in sorted(self._comps.items()):
             h.update(json.dumps([cid, c.frames]).encode())
@@ -524,7 +537,9 @@ class StochasticMap:
             radial = np.einsum("mpk,mk->mp", c_xy_t[..., 3:], q_bar)
             c_xy_t[..., 3:] -= radial[..., None] * q_bar[:, None, :]
         if self.shrink is not None:
-            c_xy_t = an.shrink_correlations(c_xy_t, c.edges, yc, self.shrink)
+            sq = np.einsum("mnk,mnk->mk", c.edges, c.edges) / n
+            var_x = np.clip(sq - mean**2, 0.0, None) * (n / (n - 1))
+            c_xy_t = an.shrink_correlations(c_xy_t, var_x, yc, self.shrink)
         # Finite factors with a bounded product give finite increments: this replaces a full
         # isfinite pass over the (M, N, 7) result.
         bound = float(np.abs(c_xy_t).max(initial=0.0)) * float(np.abs(w).max()) * w.shape[1]
@@ -532,10 +547,11 @@ class StochasticMap:
             raise NumericalError("the update's gain is not finite")
         new_edges = np.matmul(w[None], c_xy_t)  # (M, N, 7): the increments
         new_edges += c.edges
-        if self.inflation != 1.0:
+        inflation, nis_avg = self._loop_inflation(yc, y_mean, z)
+        if inflation != 1.0:
             new_mean = mean + w.mean(axis=0) @ c_xy_t  # (M, 7)
             new_edges -= new_mean[:, None, :]
-            new_edges *= self.inflation
+            new_edges *= inflation
             new_edges += new_mean[:, None, :]
         q = new_edges[..., 3:]
         norm = np.sqrt(np.einsum("mnk,mnk->mn", q, q))
@@ -547,8 +563,22 @@ class StochasticMap:
         # unchanged up to rounding; pin them exactly so they stay definitions, not estimates.
         edges[0] = identity(n)
         self._pin_points(edges, c.is_point)
-        c.edges = edges  # the only mutation, after every check
+        c.edges = edges  # the only mutations, after every check
+        self._nis_avg = nis_avg
         return UpdateResult("loop_closure", c.root, ())
+
+    def _loop_inflation(self, yc: Array, y_mean: Array, z: Array) -> tuple[float, float]:
+        """The inflation factor of this loop closure and the new running NIS average."""
+        if self.inflation != "adaptive":
+            return float(self.inflation), self._nis_avg
+        n = yc.shape[0]
+        s = yc.T @ yc / (n - 1) + sample_cov(z)
+        d, lam, v = scaled_eigh(s)
+        u = v.T @ ((z.mean(axis=0) - y_mean) * d)
+        live = lam > 0.0
+        nis = float(np.sum(u[live] ** 2 / lam[live])) / max(1, int(live.sum()))
+        avg = (1.0 - ADAPT_RATE) * self._nis_avg + ADAPT_RATE * nis
+        return float(np.clip(1.0 + ADAPT_STRENGTH * (avg - 1.0), 1.0, ADAPT_MAX)), avg
 
     def _predict(self, e_a: Array, e_b: Array, x: Array, point: bool) -> tuple[Array, Array]:
         """Predicted observation y and observation z as plain vectors, per sample."""
