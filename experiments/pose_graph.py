@@ -420,7 +420,8 @@ def evaluate(
         scenario=scenario, method=str(config["method"]), space=str(config["space"]),
         analysis=str(config["analysis"]), loop_update=str(config["loop_update"]),
         shrink=float("nan") if config["shrink"] is None else float(config["shrink"]),  # type: ignore[arg-type]
-        inflation=float(config["inflation"]),  # type: ignore[arg-type]
+        inflation=(float("nan") if config["inflation"] == "adaptive"
+                   else float(config["inflation"])),  # type: ignore[arg-type]
         n_samples=int(config["n_samples"]),  # type: ignore[call-overload]
         n_poses=graph.n_poses, n_loops=graph.n_loops, seed=seed,
         ate_map_m=a, ate_gtsam_m=ate_gtsam, ate_dead_reckoning_m=ate_dr,
@@ -438,7 +439,9 @@ def make_map(config: dict[str, object]) -> object:
     return StochasticMap(
         int(config["n_samples"]),  # type: ignore[call-overload]
         method=config["method"], space=config["space"], analysis=config["analysis"],
-        shrink=config["shrink"], inflation=float(config["inflation"]),  # type: ignore[arg-type]
+        shrink=config["shrink"],  # type: ignore[arg-type]
+        inflation=(config["inflation"] if config["inflation"] == "adaptive"
+                   else float(config["inflation"])),  # type: ignore[arg-type]
     )
 
 
@@ -705,7 +708,8 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--analysis", default="ensrf", choices=["ensrf", "denkf", "enkf"])
     ap.add_argument("--shrink", type=float, default=4.0,
                     help="correlation shrink c of the joint update (negative: none)")
-    ap.add_argument("--inflation", type=float, default=1.0)
+    ap.add_argument("--inflation", type=lambda t: t if t == "adaptive" else float(t),
+                    default=1.0, help="core inflation: a factor, or 'adaptive' (NIS-driven)")
     ap.add_argument("--loop-updates", nargs="+", default=["adaptive"],
                     help="'single', 'mdaxK' (K partial updates per loop closure) or "
                          "'adaptive[strength]' (inflation from the innovation statistics)")
