@@ -50,8 +50,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="vector space of the merges (default tangent)")
     s.add_argument("--analysis", choices=("ensrf", "denkf", "enkf"), default="ensrf",
                    help="analysis rule of the joint update (default ensrf, square root)")
-    s.add_argument("--shrink", type=float, default=None, metavar="C",
-                   help="correlation shrink constant of the joint update (default off)")
+    s.add_argument("--shrink", type=_shrink, default=4.0, metavar="C|none",
+                   help="correlation shrink constant of the joint update (default 4; 'none' "
+                        "turns it off)")
     s.add_argument("--inflation", type=_inflation, default=1.0, metavar="F|adaptive",
                    help="anomaly inflation per loop closure: a factor in [1, 2) or 'adaptive' "
                         "(default 1, none)")
@@ -89,6 +90,16 @@ def main(argv: list[str] | None = None) -> int:
 
 
 # ------------------------------------------------------------------------------------ serve
+def _shrink(text: str) -> float | None:
+    if text == "none":
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0 or 'none', got {text!r}") \
+            from None
+
+
 def _inflation(text: str) -> float | str:
     if text == "adaptive":
         return text
