@@ -82,11 +82,17 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    if args.command == "serve":
-        return serve(args)
-    if args.command == "replay":
-        return replay_cmd(args)
-    return inspect_cmd(args)
+    try:
+        if args.command == "serve":
+            return serve(args)
+        if args.command == "replay":
+            return replay_cmd(args)
+        return inspect_cmd(args)
+    except BrokenPipeError:  # `mcsm inspect FILE | head`: the reader went away
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
 
 
 # ------------------------------------------------------------------------------------ serve
