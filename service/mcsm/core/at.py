@@ -68,11 +68,27 @@ def invert(x_a_b: Array) -> Array:
 def relative(x_r_a: Array, x_r_b: Array) -> Array:
     """``x_r_a^R ⊕ x_r_b`` (the AT a→b from two edges of one star), in one step.
 
-    ``t = R(q_a)ᵀ (t_b − t_a)``, ``q = q_a⁻¹ q_b``; the query of PAPER §3, O(N).
+    ``t = R(q_a)ᵀ (t_b − t_a)``, ``q = q_a⁻¹ q_b``; the query of PAPER §3, O(N). Written on
+    the component rows (``(7, ...)`` contiguous copies) rather than the strided ``(..., 4)``
+    columns: a query is a few dozen length-N kernels and their count is its cost.
     """
-    q_a_inv = qconj(x_r_a[..., 3:])
-    t = qrot(q_a_inv, x_r_b[..., :3] - x_r_a[..., :3])
-    return np.concatenate((t, qmul(q_a_inv, x_r_b[..., 3:])), axis=-1)
+    a = np.ascontiguousarray(np.moveaxis(x_r_a, -1, 0))
+    b = np.ascontiguousarray(np.moveaxis(x_r_b, -1, 0))
+    w, x, y, z = a[3], a[4], a[5], a[6]
+    d0, d1, d2 = b[0] - a[0], b[1] - a[1], b[2] - a[2]
+    # R(q)ᵀ d = d − 2w (u × d) + 2 u × (u × d), u = (x, y, z)
+    c0, c1, c2 = y * d2 - z * d1, z * d0 - x * d2, x * d1 - y * d0
+    out = np.empty(np.broadcast_shapes(np.shape(x_r_a), np.shape(x_r_b)))
+    o = np.moveaxis(out, -1, 0)
+    o[0] = d0 + 2.0 * (y * c2 - z * c1 - w * c0)
+    o[1] = d1 + 2.0 * (z * c0 - x * c2 - w * c1)
+    o[2] = d2 + 2.0 * (x * c1 - y * c0 - w * c2)
+    bw, bx, by, bz = b[3], b[4], b[5], b[6]
+    o[3] = w * bw + x * bx + y * by + z * bz
+    o[4] = w * bx - x * bw - y * bz + z * by
+    o[5] = w * by + x * bz - y * bw - z * bx
+    o[6] = w * bz - x * by + y * bx - z * bw
+    return out
 
 
 def canonicalize(x: Array, normalize: bool = True) -> Array:

@@ -22,9 +22,12 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import re
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -64,6 +67,38 @@ METHODS = ("joint", "paper")
 # adaptive inflation (issue 8): running-average rate, strength, largest factor
 ADAPT_RATE, ADAPT_STRENGTH, ADAPT_MAX = 0.05, 0.008, 1.01
 SPACES = ("tangent", "quaternion")
+# The joint update walks the edges in blocks of about this many bytes (a few frames), so that
+# its chain of kernels on one block stays in the core's cache; see _blocks.
+BLOCK_BYTES = 2 << 20
+_T = TypeVar("_T")
+_POOLS: dict[int, ThreadPoolExecutor] = {}
+
+
+def _blocks(m: int, n: int) -> list[slice]:
+    """Frame blocks of about BLOCK_BYTES for a component of m frames with n samples each.
+
+    Depends on the shape only (never on the thread count), so every frame sees the same
+    kernels whatever the machine.
+    """
+    step = max(1, BLOCK_BYTES // (n * 7 * 8))
+    return [slice(i, min(i + step, m)) for i in range(0, m, step)]
+
+
+def _pool(threads: int) -> ThreadPoolExecutor:
+    """A process-wide pool of ``threads`` workers, made on first use."""
+    if threads not in _POOLS:
+        _POOLS[threads] = ThreadPoolExecutor(threads, thread_name_prefix="mcsm-core")
+    return _POOLS[threads]
+
+
+def default_threads() -> int:
+    """Threads for the joint update's block passes: the cores this process may use, at
+    most 4 (the passes are memory-bound; more threads stop paying)."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cores = os.cpu_count() or 1
+    return max(1, min(4, cores))
 
 
 def check_frame_name(name: object) -> str:
@@ -136,6 +171,9 @@ class StochasticMap:
         normalised innovation squared per dof (NIS) of the loop closures,
         ``λ = clip(1 + 0.008 (avg − 1), 1, 1.01)``, ``avg ← 0.95 avg + 0.05 NIS``; an honest
         map has NIS ≈ 1 and so gets no inflation (measured on 3-D pose graphs, issue 8)
+    threads : threads for the joint update's passes over the edges (default
+        :func:`default_threads`). Not part of :meth:`options` or the state: every thread
+        count gives bit-identical results.
     """
 
     def __init__(
@@ -147,6 +185,7 @@ class StochasticMap:
         analysis: str = "ensrf",
         shrink: float | None = 4.0,
         inflation: float | str = 1.0,
+        threads: int | None = None,
     ) -> None:
         if not isinstance(n_samples, int) or isinstance(n_samples, bool) or n_samples < 2:
             raise InvalidOperation(f"n_samples must be an integer >= 2, got {n_samples!r}")
@@ -162,6 +201,10 @@ class StochasticMap:
                 isinstance(inflation, (int, float)) and np.isfinite(inflation)
                 and 1.0 <= inflation < 2.0):
             raise InvalidOperation(f"inflation must be in [1, 2) or 'adaptive', got {inflation!r}")
+        if threads is not None and (not isinstance(threads, int) or isinstance(threads, bool)
+                                    or not 1 <= threads <= 64):
+            raise InvalidOperation(f"threads must be None or an integer in [1, 64], "
+                                   f"got {threads!r}")
         self.n_samples = n_samples
         self.method: Method = method  # type: ignore[assignment]
         self.space: Space = space  # type: ignore[assignment]
@@ -173,6 +216,8 @@ class StochasticMap:
         self._where: dict[str, int] = {}  # frame -> component id
         self._order: dict[str, None] = {}  # frames in insertion order
         self._next_id = 0
+        self.threads = default_threads() if threads is None else threads
+        self._spare: Array | None = None  # the edge array the last joint update replaced
 
     # ------------------------------------------------------------------ introspection
 
@@ -215,10 +260,8 @@ class StochasticMap:
         return bool(c.is_point[c.index[frame]])
 
     def edges(self, frame: str) -> Array:
-        """A read-only view of the ``(M, N, 7)`` edge array of ``frame``'s component."""
-        e = self._comp_of(frame).edges.view()
-        e.flags.writeable = False
-        return e
+        """A copy of the ``(M, N, 7)`` edge array of ``frame``'s component (root first)."""
+        return self._comp_of(frame).edges.copy()
 
     def state_digest(self) -> str:
         """SHA-256 (hex) of the whole state: options, components, names, flags, sample bytes."""
@@ -509,7 +552,12 @@ class StochasticMap:
     # ------------------------------------------------------------------ case II: joint
 
     def _joint_update(self, a: str, b: str, x: Array, point: bool) -> UpdateResult:
-        """One ensemble-Kalman analysis of the whole component (module docstring)."""
+        """One ensemble-Kalman analysis of the whole component (module docstring).
+
+        The two passes over the edges run over blocks of frames (:func:`_blocks`), on up to
+        :attr:`threads` threads; every frame's arithmetic is the same whatever the blocks or
+        the thread count, so the result is bit-identical.
+        """
         cid = self._where[a]
         c = self._comps[cid]
         ia, ib = c.index[a], c.index[b]
@@ -524,10 +572,22 @@ class StochasticMap:
         if not np.isfinite(w).all():
             raise NumericalError("the analysis produced non-finite weights")
 
-        # One pass over the edges gives every edge's cross-covariance with the predicted
-        # observation and its mean: [yc, 1] is (N, p+1); result (M, p+1, 7).
-        lhs = np.concatenate((yc / (n - 1), np.full((n, 1), 1.0 / n)), axis=1)
-        moments = np.matmul(lhs.T[None], c.edges)
+        edges = c.edges
+        blocks = _blocks(edges.shape[0], n)
+        # Pass 1 gives every edge's cross-covariance with the predicted observation and its
+        # mean ([yc, 1] is (N, p+1); result (M, p+1, 7)), and the sums of squares for the
+        # shrinkage.
+        lhs_t = np.concatenate((yc / (n - 1), np.full((n, 1), 1.0 / n)), axis=1).T[None]
+        moments = np.empty((edges.shape[0], lhs_t.shape[1], 7))
+        sq = np.empty((edges.shape[0], 7)) if self.shrink is not None else None
+
+        def first(s: slice) -> None:
+            e = edges[s]
+            np.matmul(lhs_t, e, out=moments[s])
+            if sq is not None:
+                np.einsum("mnk,mnk->mk", e, e, out=sq[s])
+
+        self._run_blocks(first, blocks)
         c_xy_t = moments[:, :-1, :]
         mean = moments[:, -1, :]  # (M, 7)
         if self.space == "tangent":
@@ -538,36 +598,60 @@ class StochasticMap:
             q_bar = mean[:, 3:] / np.linalg.norm(mean[:, 3:], axis=1, keepdims=True)
             radial = np.einsum("mpk,mk->mp", c_xy_t[..., 3:], q_bar)
             c_xy_t[..., 3:] -= radial[..., None] * q_bar[:, None, :]
-        if self.shrink is not None:
-            sq = np.einsum("mnk,mnk->mk", c.edges, c.edges) / n
-            var_x = np.clip(sq - mean**2, 0.0, None) * (n / (n - 1))
+        if sq is not None:
+            assert self.shrink is not None
+            var_x = np.clip(sq / n - mean**2, 0.0, None) * (n / (n - 1))
             c_xy_t = an.shrink_correlations(c_xy_t, var_x, yc, self.shrink)
         # Finite factors with a bounded product give finite increments: this replaces a full
         # isfinite pass over the (M, N, 7) result.
         bound = float(np.abs(c_xy_t).max(initial=0.0)) * float(np.abs(w).max()) * w.shape[1]
         if not (np.isfinite(c_xy_t).all() and bound < 1e100):
             raise NumericalError("the update's gain is not finite")
-        new_edges = np.matmul(w[None], c_xy_t)  # (M, N, 7): the increments
-        new_edges += c.edges
         inflation, nis_avg = self._loop_inflation(yc, y_mean, z)
-        if inflation != 1.0:
-            new_mean = mean + w.mean(axis=0) @ c_xy_t  # (M, 7)
-            new_edges -= new_mean[:, None, :]
-            new_edges *= inflation
-            new_edges += new_mean[:, None, :]
-        q = new_edges[..., 3:]
-        norm = np.sqrt(np.einsum("mnk,mnk->mn", q, q))
-        if not (np.isfinite(norm).all() and np.all(norm > 0.1)):
+        new_mean = mean + w.mean(axis=0) @ c_xy_t if inflation != 1.0 else None  # (M, 7)
+        out = self._spare_buffer(edges.shape)
+        w_b = w[None]
+
+        def second(s: slice) -> bool:
+            o = out[s]
+            np.matmul(w_b, c_xy_t[s], out=o)  # the increments
+            o += edges[s]
+            if new_mean is not None:
+                o -= new_mean[s, None, :]
+                o *= inflation
+                o += new_mean[s, None, :]
+            q = o[..., 3:]
+            norm = np.sqrt(np.einsum("mnk,mnk->mn", q, q))
+            if not (np.isfinite(norm).all() and np.all(norm > 0.1)):
+                return False
+            q /= norm[..., None]
+            return True
+
+        if not all(self._run_blocks(second, blocks)):
             raise NumericalError("the update pushed quaternions to zero or non-finite values")
-        q /= norm[..., None]
-        edges = new_edges
         # The root edge and point orientations have zero anomalies, so the update leaves them
         # unchanged up to rounding; pin them exactly so they stay definitions, not estimates.
-        edges[0] = identity(n)
-        self._pin_points(edges, c.is_point)
-        c.edges = edges  # the only mutations, after every check
+        out[0] = identity(n)
+        self._pin_points(out, c.is_point)
+        c.edges = out  # the only mutations, after every check
+        self._spare = edges
         self._nis_avg = nis_avg
         return UpdateResult("loop_closure", c.root, ())
+
+    def _spare_buffer(self, shape: tuple[int, ...]) -> Array:
+        """An uninitialised array of ``shape``: the edge array the last joint update replaced
+        when the shapes agree (no fresh 22 MB allocation and its page faults per update)."""
+        spare, self._spare = self._spare, None
+        if spare is not None and spare.shape == shape:
+            return spare
+        return np.empty(shape)
+
+    def _run_blocks(self, fn: Callable[[slice], _T], blocks: list[slice]) -> list[_T]:
+        """``fn`` over the blocks, in order, on up to ``threads`` threads (numpy releases the
+        GIL in these kernels); results in block order."""
+        if self.threads <= 1 or len(blocks) < 2:
+            return [fn(s) for s in blocks]
+        return list(_pool(self.threads).map(fn, blocks))
 
     def _loop_inflation(self, yc: Array, y_mean: Array, z: Array) -> tuple[float, float]:
         """The inflation factor of this loop closure and the new running NIS average."""
