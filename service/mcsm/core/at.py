@@ -19,6 +19,8 @@ import numpy as np
 import numpy.typing as npt
 
 from mcsm.core.quat import (
+    _L_INDEX,
+    _L_SIGN,
     align_hemisphere,
     mean_rotation,
     qconj,
@@ -26,6 +28,7 @@ from mcsm.core.quat import (
     qmul,
     qnormalize,
     qrot,
+    rotation_matrix,
 )
 from mcsm.errors import InvalidSamples, SampleCountMismatch
 
@@ -250,3 +253,142 @@ def mean_and_cov(x: Array) -> tuple[Array, Array]:
     v = np.concatenate((x[..., :3], rotvec), axis=-1)
     mean = np.concatenate((v[..., :3].mean(axis=-2), q_ref), axis=-1)
     return mean, sample_cov(v)
+
+
+# --------------------------------------------------------------------------- paper propagation
+
+#: samples (frames × N) per block of :func:`merge_correlated_shifted`: the block's ~40 planes
+#: stay in the L2 cache while it is transformed, reduced and merged.
+_BLOCK_SAMPLES = 8192
+
+
+def _rot_rows(q: Array) -> Array:
+    """Rotation matrices of unit quaternions ``(N, 4)`` as planes ``(3, 3, N)``."""
+    return np.ascontiguousarray(np.moveaxis(rotation_matrix(q), 0, -1))
+
+
+def _lmul_rows(q: Array) -> Array:
+    """Left-multiplication matrices ``L(q)`` (``qmul(q, p) = L(q) p``) of ``(..., 4)`` as
+    ``(..., 4, 4)``."""
+    return q[..., _L_INDEX] * _L_SIGN
+
+
+def _compound_planes(rot: Array, lmul: Array, t_pre: Array, src: Array, dst: Array,
+                     tmp: Array) -> None:
+    """``dst = pre ⊕ src`` on planar blocks ``(m, 7, N)`` with per-sample ``pre`` given as
+    its rotation ``rot (3, 3, N)``, quaternion product ``lmul (4, 4, N)`` and translation
+    ``t_pre (3, N)``; ``tmp`` is an ``(m, N)`` scratch plane."""
+    for i in range(3):
+        np.multiply(src[:, 0], rot[i, 0], out=dst[:, i])
+        for j in (1, 2):
+            np.multiply(src[:, j], rot[i, j], out=tmp)
+            dst[:, i] += tmp
+        dst[:, i] += t_pre[i]
+    for i in range(4):
+        np.multiply(src[:, 3], lmul[i, 0], out=dst[:, 3 + i])
+        for j in (1, 2, 3):
+            np.multiply(src[:, 3 + j], lmul[i, j], out=tmp)
+            dst[:, 3 + i] += tmp
+
+
+def merge_correlated_shifted(edges: Array, shift: Array, pre: Array | None = None,
+                             pin: npt.NDArray[np.bool_] | None = None,
+                             out: Array | None = None) -> Array:
+    """``merge_correlated(e, shift ⊕ e, "tangent")`` for every AT ``e`` of a stack, fused.
+
+    ``edges`` ``(M, N, 7)``; ``shift`` ``(N, 7)`` is one AT applied to every edge. With ``pre``
+    ``(N, 7)`` every edge is first replaced by ``pre ⊕ e`` (a re-rooting), and rows of ``pin``
+    ``(M,)`` then get identity quaternions (point frames), as PAPER Fig. 3 does before the merge.
+    Returns ``(M, N, 7)`` (into ``out`` if given; it must not overlap ``edges``).
+
+    Same mathematics as :func:`merge_correlated` in the tangent chart (PAPER §2, eq. 6), with
+    ``C = e``, ``D = shift ⊕ e`` and ``Δ = p_D − p_C``: ``C_A = −sym(cov(p_C, Δ))``,
+    ``C_A + C_B = cov(Δ)`` (the same matrices, without the cancellation of
+    ``cov C + cov D − cov(C − D)``), ``p = p_C + K Δ``, ``K = C_A (cov Δ)⁺``. The edges are
+    processed in blocks of frames transposed to planes ``(m, k, N)``: every per-sample step is
+    a few contiguous numpy calls that stay in cache, every sample sum a batched matmul.
+    """
+    n_frames, n, _ = edges.shape
+    if out is None:
+        out = np.empty_like(edges)
+    rot_s, lmul_s = _rot_rows(shift[:, 3:]), np.ascontiguousarray(
+        np.moveaxis(_lmul_rows(shift[:, 3:]), 0, -1))
+    t_s = np.ascontiguousarray(shift[:, :3].T)
+    if pre is not None:
+        rot_p, lmul_p = _rot_rows(pre[:, 3:]), np.ascontiguousarray(
+            np.moveaxis(_lmul_rows(pre[:, 3:]), 0, -1))
+        t_p = np.ascontiguousarray(pre[:, :3].T)
+    step = max(1, _BLOCK_SAMPLES // n)
+    m = min(step, n_frames)
+    src = np.empty((m, 7, n))
+    ec = np.empty((m, 7, n))
+    ed = np.empty((m, 7, n))
+    p = np.empty((m, 12, n))  # [t_C, v_C, Δt, Δv] with v = vec(q_ref⁻¹ q) = δ / 2
+    rel = np.empty((m, 2, 4, n))
+    y = np.empty((m, 7, n))
+    tmp = np.empty((m, n))
+    sign = np.empty((m, 2, n))
+    # δ = 2 v: the covariances in δ units from those in v units, exactly (powers of two)
+    s = np.array([1.0, 1.0, 1.0, 2.0, 2.0, 2.0])
+    ss = s[:, None] * s[None, :]
+    for lo in range(0, n_frames, step):
+        hi = min(lo + step, n_frames)
+        k = hi - lo
+        src_k, ec_k, ed_k, p_k = src[:k], ec[:k], ed[:k], p[:k]
+        rel_k, y_k, tmp_k, sign_k = rel[:k], y[:k], tmp[:k], sign[:k]
+        src_k[...] = np.swapaxes(edges[lo:hi], 1, 2)
+        if pre is not None:
+            _compound_planes(rot_p, lmul_p, t_p, src_k, ec_k, tmp_k)
+            c_k = ec_k
+        else:
+            c_k = src_k
+        if pin is not None and pin[lo:hi].any():
+            c_k[pin[lo:hi], 3] = 1.0
+            c_k[pin[lo:hi], 4:] = 0.0
+        _compound_planes(rot_s, lmul_s, t_s, c_k, ed_k, tmp_k)
+        q_c, q_d = c_k[:, 3:], ed_k[:, 3:]
+        # reference rotation: chordal mean of q_C on the hemisphere of its first sample
+        np.einsum("mkn,mk->mn", q_c, q_c[:, :, 0], out=tmp_k)
+        q_ref = np.matmul(q_c, np.where(tmp_k < 0.0, -1.0, 1.0)[..., None])[..., 0]
+        q_ref /= np.linalg.norm(q_ref, axis=-1, keepdims=True)
+        # q_ref⁻¹ q for C and D, on the hemisphere of the identity
+        l_inv = _lmul_rows(q_ref * np.array([1.0, -1.0, -1.0, -1.0]))  # (k, 4, 4)
+        np.matmul(l_inv, q_c, out=rel_k[:, 0])
+        np.matmul(l_inv, q_d, out=rel_k[:, 1])
+        # the sign of w, with w = ±0 kept as is (+0.0 + -0.0 = +0.0), as align_hemisphere
+        np.add(rel_k[:, :, 0], 0.0, out=sign_k)
+        np.copysign(1.0, sign_k, out=sign_k)
+        np.multiply(rel_k[:, 0, 1:], sign_k[:, 0, None], out=p_k[:, 3:6])
+        np.multiply(rel_k[:, 1, 1:], sign_k[:, 1, None], out=p_k[:, 9:12])
+        p_k[:, 9:12] -= p_k[:, 3:6]
+        p_k[:, 0:3] = c_k[:, :3]
+        np.subtract(ed_k[:, :3], c_k[:, :3], out=p_k[:, 6:9])
+        mean = p_k.mean(axis=-1)  # (k, 12)
+        p_k -= mean[..., None]
+        gram = np.matmul(p_k, np.swapaxes(p_k, 1, 2)) / (n - 1)  # (k, 12, 12)
+        c_cd = gram[:, :6, 6:] * ss
+        c_a = -0.5 * (c_cd + np.swapaxes(c_cd, 1, 2))
+        gain = (c_a @ scaled_pinv(gram[:, 6:, 6:] * ss)) * (s[None, None, :] / s[:, None])
+        gain7 = np.zeros((k, 7, 6))
+        gain7[:, :3] = gain[:, :3]
+        gain7[:, 4:] = gain[:, 3:]
+        np.matmul(gain7, p_k[:, 6:], out=y_k)
+        y_k[:, :3] += p_k[:, :3]
+        y_k[:, 4:] += p_k[:, 3:6]
+        shift7 = np.einsum("mij,mj->mi", gain7, mean[:, 6:])
+        shift7[:, :3] += mean[:, :3]
+        shift7[:, 4:] += mean[:, 3:6]
+        y_k += shift7[..., None]
+        # back from the chart: rel = (w, v) with w = sqrt(1 − |v|²), q = q_ref rel
+        half = y_k[:, 4:]
+        np.einsum("mkn,mkn->mn", half, half, out=tmp_k)
+        np.subtract(1.0, tmp_k, out=y_k[:, 3])
+        np.maximum(y_k[:, 3], 0.0, out=y_k[:, 3])
+        np.sqrt(y_k[:, 3], out=y_k[:, 3])
+        # |v| <= 1 gives a unit (w, v) already; beyond, w = 0 and v is normalised
+        if tmp_k.max(initial=0.0) > 1.0:
+            half /= np.sqrt(np.maximum(tmp_k, 1.0))[:, None]
+        np.matmul(_lmul_rows(q_ref), y_k[:, 3:], out=ec_k[:, 3:])
+        out[lo:hi, :, :3] = np.swapaxes(y_k[:, :3], 1, 2)
+        out[lo:hi, :, 3:] = np.swapaxes(ec_k[:, 3:], 1, 2)
+    return out
