@@ -259,36 +259,35 @@ def mean_and_cov(x: Array) -> tuple[Array, Array]:
 
 #: samples (frames × N) per block of :func:`merge_correlated_shifted`: the block's ~40 planes
 #: stay in the L2 cache while it is transformed, reduced and merged.
-_BLOCK_SAMPLES = 8192
-
-
-def _rot_rows(q: Array) -> Array:
-    """Rotation matrices of unit quaternions ``(N, 4)`` as planes ``(3, 3, N)``."""
-    return np.ascontiguousarray(np.moveaxis(rotation_matrix(q), 0, -1))
+_BLOCK_SAMPLES = 16384
+_CONJ = np.array([1.0, -1.0, -1.0, -1.0])
+# rows of p_C = [t_C, v_C] and Δ = [Δt, Δv] among the block's rows 1..13
+_PC = np.array([3, 4, 5, 0, 1, 2])
+_DELTA = np.arange(7, 13)
 
 
 def _lmul_rows(q: Array) -> Array:
-    """Left-multiplication matrices ``L(q)`` (``qmul(q, p) = L(q) p``) of ``(..., 4)`` as
+    """Left-multiplication matrices ``L(q)`` (``qmul(q, p) = L(q) p``): ``(..., 4)`` ->
     ``(..., 4, 4)``."""
     return q[..., _L_INDEX] * _L_SIGN
 
 
-def _compound_planes(rot: Array, lmul: Array, t_pre: Array, src: Array, dst: Array,
-                     tmp: Array) -> None:
-    """``dst = pre ⊕ src`` on planar blocks ``(m, 7, N)`` with per-sample ``pre`` given as
-    its rotation ``rot (3, 3, N)``, quaternion product ``lmul (4, 4, N)`` and translation
-    ``t_pre (3, N)``; ``tmp`` is an ``(m, N)`` scratch plane."""
-    for i in range(3):
-        np.multiply(src[:, 0], rot[i, 0], out=dst[:, i])
-        for j in (1, 2):
-            np.multiply(src[:, j], rot[i, j], out=tmp)
-            dst[:, i] += tmp
-        dst[:, i] += t_pre[i]
-    for i in range(4):
-        np.multiply(src[:, 3], lmul[i, 0], out=dst[:, 3 + i])
-        for j in (1, 2, 3):
-            np.multiply(src[:, 3 + j], lmul[i, j], out=tmp)
-            dst[:, 3 + i] += tmp
+def _planar_at(x: Array, minus_identity: bool = False) -> tuple[Array, Array]:
+    """An AT ``(N, 7)`` as per-sample planes: ``[R | t]`` ``(3, 4, N)`` (``R − I`` if
+    ``minus_identity``), acting on ``[v; 1]``, and ``L(q)`` ``(4, 4, N)``."""
+    r = rotation_matrix(x[:, 3:])
+    if minus_identity:
+        r -= np.eye(3)
+    rt = np.concatenate((r, x[:, :3, None]), axis=2)
+    return (np.ascontiguousarray(np.moveaxis(rt, 0, -1)),
+            np.ascontiguousarray(np.moveaxis(_lmul_rows(x[:, 3:]), 0, -1)))
+
+
+def _flip_to_identity(rel: Array) -> None:
+    """``align_hemisphere(rel, 1)`` in place on planes ``(m, 4, N)`` (rows w x y z)."""
+    w = rel[:, 0]
+    if w.min(initial=0.0) < 0.0:
+        rel *= np.where(w < 0.0, -1.0, 1.0)[:, None, :]
 
 
 def merge_correlated_shifted(edges: Array, shift: Array, pre: Array | None = None,
@@ -302,93 +301,89 @@ def merge_correlated_shifted(edges: Array, shift: Array, pre: Array | None = Non
     Returns ``(M, N, 7)`` (into ``out`` if given; it must not overlap ``edges``).
 
     Same mathematics as :func:`merge_correlated` in the tangent chart (PAPER §2, eq. 6), with
-    ``C = e``, ``D = shift ⊕ e`` and ``Δ = p_D − p_C``: ``C_A = −sym(cov(p_C, Δ))``,
+    ``C = e``, ``D = shift ⊕ e`` and ``Δ = p_D − p_C``: ``C_A = −sym(cov(p_C, Δ))`` and
     ``C_A + C_B = cov(Δ)`` (the same matrices, without the cancellation of
     ``cov C + cov D − cov(C − D)``), ``p = p_C + K Δ``, ``K = C_A (cov Δ)⁺``. The edges are
-    processed in blocks of frames transposed to planes ``(m, k, N)``: every per-sample step is
-    a few contiguous numpy calls that stay in cache, every sample sum a batched matmul.
+    processed in blocks of frames held as planes ``(m, k, N)``: every per-sample step is one
+    einsum or batched matmul over a block, the output is written by BLAS straight into
+    ``(M, N, 7)`` order.
     """
     n_frames, n, _ = edges.shape
     if out is None:
         out = np.empty_like(edges)
-    rot_s, lmul_s = _rot_rows(shift[:, 3:]), np.ascontiguousarray(
-        np.moveaxis(_lmul_rows(shift[:, 3:]), 0, -1))
-    t_s = np.ascontiguousarray(shift[:, :3].T)
-    if pre is not None:
-        rot_p, lmul_p = _rot_rows(pre[:, 3:]), np.ascontiguousarray(
-            np.moveaxis(_lmul_rows(pre[:, 3:]), 0, -1))
-        t_p = np.ascontiguousarray(pre[:, :3].T)
+    # Δt = t_D − t_C = (R_s − I) t_C + t_s in one contraction
+    a_s, l_s = _planar_at(shift, minus_identity=True)
+    a_p, l_p = _planar_at(pre) if pre is not None else (None, None)
     step = max(1, _BLOCK_SAMPLES // n)
     m = min(step, n_frames)
-    src = np.empty((m, 7, n))
-    ec = np.empty((m, 7, n))
-    ed = np.empty((m, 7, n))
-    p = np.empty((m, 12, n))  # [t_C, v_C, Δt, Δv] with v = vec(q_ref⁻¹ q) = δ / 2
-    rel = np.empty((m, 2, 4, n))
-    y = np.empty((m, 7, n))
+    # rows: 0 w_C, 1-3 v_C, 4-6 t_C, 7 ones, 8-10 Δt, 11-13 Δv; v = vec(q_ref⁻¹ q) = δ / 2
+    p = np.empty((m, 14, n))
+    p[:, 7] = 1.0
+    x_in = np.empty((m, 8, n))  # [t, 1, q] of the input edges (re-rooting only)
+    x_in[:, 3] = 1.0
+    q_c = np.empty((m, 4, n))
+    q_d = np.empty((m, 4, n))
+    rel_d = np.empty((m, 4, n))
+    y = np.empty((m, 4, n))  # (w, v) of the result
     tmp = np.empty((m, n))
-    sign = np.empty((m, 2, n))
-    # δ = 2 v: the covariances in δ units from those in v units, exactly (powers of two)
+    # the covariances in δ units from those in v units, exactly (powers of two)
     s = np.array([1.0, 1.0, 1.0, 2.0, 2.0, 2.0])
     ss = s[:, None] * s[None, :]
     for lo in range(0, n_frames, step):
         hi = min(lo + step, n_frames)
         k = hi - lo
-        src_k, ec_k, ed_k, p_k = src[:k], ec[:k], ed[:k], p[:k]
-        rel_k, y_k, tmp_k, sign_k = rel[:k], y[:k], tmp[:k], sign[:k]
-        src_k[...] = np.swapaxes(edges[lo:hi], 1, 2)
-        if pre is not None:
-            _compound_planes(rot_p, lmul_p, t_p, src_k, ec_k, tmp_k)
-            c_k = ec_k
+        p_k, q_c_k, q_d_k, rel_d_k, y_k, tmp_k = (
+            p[:k], q_c[:k], q_d[:k], rel_d[:k], y[:k], tmp[:k])
+        src = np.swapaxes(edges[lo:hi], 1, 2)
+        if a_p is not None and l_p is not None:
+            x_k = x_in[:k]
+            x_k[:, :3] = src[:, :3]
+            x_k[:, 4:] = src[:, 3:]
+            np.einsum("ijn,mjn->min", a_p, x_k[:, :4], out=p_k[:, 4:7])
+            np.einsum("ijn,mjn->min", l_p, x_k[:, 4:], out=q_c_k)
         else:
-            c_k = src_k
+            p_k[:, 4:7] = src[:, :3]
+            q_c_k[...] = src[:, 3:]
         if pin is not None and pin[lo:hi].any():
-            c_k[pin[lo:hi], 3] = 1.0
-            c_k[pin[lo:hi], 4:] = 0.0
-        _compound_planes(rot_s, lmul_s, t_s, c_k, ed_k, tmp_k)
-        q_c, q_d = c_k[:, 3:], ed_k[:, 3:]
+            q_c_k[pin[lo:hi]] = np.array([1.0, 0.0, 0.0, 0.0])[:, None]
+        np.einsum("ijn,mjn->min", a_s, p_k[:, 4:8], out=p_k[:, 8:11])
+        np.einsum("ijn,mjn->min", l_s, q_c_k, out=q_d_k)
         # reference rotation: chordal mean of q_C on the hemisphere of its first sample
-        np.einsum("mkn,mk->mn", q_c, q_c[:, :, 0], out=tmp_k)
-        q_ref = np.matmul(q_c, np.where(tmp_k < 0.0, -1.0, 1.0)[..., None])[..., 0]
+        np.einsum("mkn,mk->mn", q_c_k, q_c_k[:, :, 0], out=tmp_k)
+        np.add(tmp_k, 0.0, out=tmp_k)  # -0.0 -> +0.0: only a negative dot flips
+        np.copysign(1.0, tmp_k, out=tmp_k)
+        q_ref = np.matmul(q_c_k, tmp_k[..., None])[..., 0]
         q_ref /= np.linalg.norm(q_ref, axis=-1, keepdims=True)
-        # q_ref⁻¹ q for C and D, on the hemisphere of the identity
-        l_inv = _lmul_rows(q_ref * np.array([1.0, -1.0, -1.0, -1.0]))  # (k, 4, 4)
-        np.matmul(l_inv, q_c, out=rel_k[:, 0])
-        np.matmul(l_inv, q_d, out=rel_k[:, 1])
-        # the sign of w, with w = ±0 kept as is (+0.0 + -0.0 = +0.0), as align_hemisphere
-        np.add(rel_k[:, :, 0], 0.0, out=sign_k)
-        np.copysign(1.0, sign_k, out=sign_k)
-        np.multiply(rel_k[:, 0, 1:], sign_k[:, 0, None], out=p_k[:, 3:6])
-        np.multiply(rel_k[:, 1, 1:], sign_k[:, 1, None], out=p_k[:, 9:12])
-        p_k[:, 9:12] -= p_k[:, 3:6]
-        p_k[:, 0:3] = c_k[:, :3]
-        np.subtract(ed_k[:, :3], c_k[:, :3], out=p_k[:, 6:9])
-        mean = p_k.mean(axis=-1)  # (k, 12)
-        p_k -= mean[..., None]
-        gram = np.matmul(p_k, np.swapaxes(p_k, 1, 2)) / (n - 1)  # (k, 12, 12)
-        c_cd = gram[:, :6, 6:] * ss
+        # v of C and D: q_ref⁻¹ q on the hemisphere of the identity
+        l_inv = _lmul_rows(q_ref * _CONJ)
+        np.matmul(l_inv, q_c_k, out=p_k[:, 0:4])
+        np.matmul(l_inv, q_d_k, out=rel_d_k)
+        _flip_to_identity(p_k[:, 0:4])
+        _flip_to_identity(rel_d_k)
+        np.subtract(rel_d_k[:, 1:], p_k[:, 1:4], out=p_k[:, 11:14])
+        mean = p_k.mean(axis=-1)  # (k, 14)
+        p_k[:, 1:7] -= mean[:, 1:7, None]
+        p_k[:, 8:14] -= mean[:, 8:14, None]
+        # one Gram of the 13 rows 1..13 gives cov(p_C, Δ) and cov(Δ); [t, v] order below
+        p_1 = p_k[:, 1:]
+        gram = np.matmul(p_1, np.swapaxes(p_1, 1, 2)) / (n - 1)
+        c_cd = gram[:, _PC][:, :, _DELTA] * ss
         c_a = -0.5 * (c_cd + np.swapaxes(c_cd, 1, 2))
-        gain = (c_a @ scaled_pinv(gram[:, 6:, 6:] * ss)) * (s[None, None, :] / s[:, None])
-        gain7 = np.zeros((k, 7, 6))
-        gain7[:, :3] = gain[:, :3]
-        gain7[:, 4:] = gain[:, 3:]
-        np.matmul(gain7, p_k[:, 6:], out=y_k)
-        y_k[:, :3] += p_k[:, :3]
-        y_k[:, 4:] += p_k[:, 3:6]
-        shift7 = np.einsum("mij,mj->mi", gain7, mean[:, 6:])
-        shift7[:, :3] += mean[:, :3]
-        shift7[:, 4:] += mean[:, 3:6]
-        y_k += shift7[..., None]
-        # back from the chart: rel = (w, v) with w = sqrt(1 − |v|²), q = q_ref rel
-        half = y_k[:, 4:]
-        np.einsum("mkn,mkn->mn", half, half, out=tmp_k)
-        np.subtract(1.0, tmp_k, out=y_k[:, 3])
-        np.maximum(y_k[:, 3], 0.0, out=y_k[:, 3])
-        np.sqrt(y_k[:, 3], out=y_k[:, 3])
-        # |v| <= 1 gives a unit (w, v) already; beyond, w = 0 and v is normalised
+        gain = (c_a @ scaled_pinv(gram[:, _DELTA][:, :, _DELTA] * ss)) * (s / s[:, None])
+        # [t, v] of the result = p_C + K Δ as one matrix on the rows 1..13 (ones at 6)
+        w = np.zeros((k, 6, 13))
+        w[:, :, _DELTA] = gain
+        w[:, np.arange(6), _PC] = 1.0
+        w[:, :, 6] = mean[:, _PC + 1] + np.einsum("mij,mj->mi", gain, mean[:, _DELTA + 1])
+        np.matmul(np.swapaxes(p_1, 1, 2), np.swapaxes(w[:, :3], 1, 2), out=out[lo:hi, :, :3])
+        np.matmul(w[:, 3:], p_1, out=y_k[:, 1:])
+        # back from the chart: (w, v) with w = sqrt(1 − |v|²), unit unless |v| > 1; q_ref (w, v)
+        np.einsum("mkn,mkn->mn", y_k[:, 1:], y_k[:, 1:], out=tmp_k)
+        np.subtract(1.0, tmp_k, out=y_k[:, 0])
+        np.maximum(y_k[:, 0], 0.0, out=y_k[:, 0])
+        np.sqrt(y_k[:, 0], out=y_k[:, 0])
         if tmp_k.max(initial=0.0) > 1.0:
-            half /= np.sqrt(np.maximum(tmp_k, 1.0))[:, None]
-        np.matmul(_lmul_rows(q_ref), y_k[:, 3:], out=ec_k[:, 3:])
-        out[lo:hi, :, :3] = np.swapaxes(y_k[:, :3], 1, 2)
-        out[lo:hi, :, 3:] = np.swapaxes(ec_k[:, 3:], 1, 2)
+            y_k[:, 1:] /= np.sqrt(np.maximum(tmp_k, 1.0))[:, None]
+        np.matmul(np.swapaxes(y_k, 1, 2), np.swapaxes(_lmul_rows(q_ref), 1, 2),
+                  out=out[lo:hi, :, 3:])
     return out
