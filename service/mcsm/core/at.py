@@ -364,12 +364,13 @@ def merge_correlated_shifted(edges: Array, shift: Array, pre: Array | None = Non
         mean = p_k.mean(axis=-1)  # (k, 14)
         p_k[:, 1:7] -= mean[:, 1:7, None]
         p_k[:, 8:14] -= mean[:, 8:14, None]
-        # one Gram of the 13 rows 1..13 gives cov(p_C, Δ) and cov(Δ); [t, v] order below
+        # one product of the 13 rows 1..13 with Δ gives cov(p_C, Δ) and cov(Δ), [t, v] order
         p_1 = p_k[:, 1:]
-        gram = np.matmul(p_1, np.swapaxes(p_1, 1, 2)) / (n - 1)
-        c_cd = gram[:, _PC][:, :, _DELTA] * ss
+        cross = np.matmul(p_1, np.swapaxes(p_1[:, 7:], 1, 2))  # (k, 13, 6)
+        cross /= n - 1
+        c_cd = cross[:, _PC] * ss
         c_a = -0.5 * (c_cd + np.swapaxes(c_cd, 1, 2))
-        gain = (c_a @ scaled_pinv(gram[:, _DELTA][:, :, _DELTA] * ss)) * (s / s[:, None])
+        gain = (c_a @ scaled_pinv(cross[:, _DELTA] * ss)) * (s / s[:, None])
         # [t, v] of the result = p_C + K Δ as one matrix on the rows 1..13 (ones at 6)
         w = np.zeros((k, 6, 13))
         w[:, :, _DELTA] = gain
