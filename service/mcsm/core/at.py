@@ -19,6 +19,8 @@ import numpy as np
 import numpy.typing as npt
 
 from mcsm.core.quat import (
+    _L_INDEX,
+    _L_SIGN,
     align_hemisphere,
     mean_rotation,
     qconj,
@@ -26,6 +28,7 @@ from mcsm.core.quat import (
     qmul,
     qnormalize,
     qrot,
+    rotation_matrix,
 )
 from mcsm.errors import InvalidSamples, SampleCountMismatch
 
@@ -269,3 +272,138 @@ def mean_and_cov(x: Array) -> tuple[Array, Array]:
     v = np.concatenate((x[..., :3], rotvec), axis=-1)
     mean = np.concatenate((v[..., :3].mean(axis=-2), q_ref), axis=-1)
     return mean, sample_cov(v)
+
+
+# --------------------------------------------------------------------------- paper propagation
+
+#: samples (frames × N) per block of :func:`merge_correlated_shifted`: the block's ~40 planes
+#: stay in the L2 cache while it is transformed, reduced and merged.
+_BLOCK_SAMPLES = 16384
+_CONJ = np.array([1.0, -1.0, -1.0, -1.0])
+# rows of p_C = [t_C, v_C] and Δ = [Δt, Δv] among the block's rows 1..13
+_PC = np.array([3, 4, 5, 0, 1, 2])
+_DELTA = np.arange(7, 13)
+
+
+def _lmul_rows(q: Array) -> Array:
+    """Left-multiplication matrices ``L(q)`` (``qmul(q, p) = L(q) p``): ``(..., 4)`` ->
+    ``(..., 4, 4)``."""
+    return q[..., _L_INDEX] * _L_SIGN
+
+
+def _planar_at(x: Array, minus_identity: bool = False) -> tuple[Array, Array]:
+    """An AT ``(N, 7)`` as per-sample planes: ``[R | t]`` ``(3, 4, N)`` (``R − I`` if
+    ``minus_identity``), acting on ``[v; 1]``, and ``L(q)`` ``(4, 4, N)``."""
+    r = rotation_matrix(x[:, 3:])
+    if minus_identity:
+        r -= np.eye(3)
+    rt = np.concatenate((r, x[:, :3, None]), axis=2)
+    return (np.ascontiguousarray(np.moveaxis(rt, 0, -1)),
+            np.ascontiguousarray(np.moveaxis(_lmul_rows(x[:, 3:]), 0, -1)))
+
+
+def _flip_to_identity(rel: Array) -> None:
+    """``align_hemisphere(rel, 1)`` in place on planes ``(m, 4, N)`` (rows w x y z)."""
+    w = rel[:, 0]
+    if w.min(initial=0.0) < 0.0:
+        rel *= np.where(w < 0.0, -1.0, 1.0)[:, None, :]
+
+
+def merge_correlated_shifted(edges: Array, shift: Array, pre: Array | None = None,
+                             pin: npt.NDArray[np.bool_] | None = None,
+                             out: Array | None = None) -> Array:
+    """``merge_correlated(e, shift ⊕ e, "tangent")`` for every AT ``e`` of a stack, fused.
+
+    ``edges`` ``(M, N, 7)``; ``shift`` ``(N, 7)`` is one AT applied to every edge. With ``pre``
+    ``(N, 7)`` every edge is first replaced by ``pre ⊕ e`` (a re-rooting), and rows of ``pin``
+    ``(M,)`` then get identity quaternions (point frames), as PAPER Fig. 3 does before the merge.
+    Returns ``(M, N, 7)`` (into ``out`` if given; it must not overlap ``edges``).
+
+    Same mathematics as :func:`merge_correlated` in the tangent chart (PAPER §2, eq. 6), with
+    ``C = e``, ``D = shift ⊕ e`` and ``Δ = p_D − p_C``: ``C_A = −sym(cov(p_C, Δ))`` and
+    ``C_A + C_B = cov(Δ)`` (the same matrices, without the cancellation of
+    ``cov C + cov D − cov(C − D)``), ``p = p_C + K Δ``, ``K = C_A (cov Δ)⁺``. The edges are
+    processed in blocks of frames held as planes ``(m, k, N)``: every per-sample step is one
+    einsum or batched matmul over a block, the output is written by BLAS straight into
+    ``(M, N, 7)`` order.
+    """
+    n_frames, n, _ = edges.shape
+    if out is None:
+        out = np.empty_like(edges)
+    # Δt = t_D − t_C = (R_s − I) t_C + t_s in one contraction
+    a_s, l_s = _planar_at(shift, minus_identity=True)
+    a_p, l_p = _planar_at(pre) if pre is not None else (None, None)
+    step = max(1, _BLOCK_SAMPLES // n)
+    m = min(step, n_frames)
+    # rows: 0 w_C, 1-3 v_C, 4-6 t_C, 7 ones, 8-10 Δt, 11-13 Δv; v = vec(q_ref⁻¹ q) = δ / 2
+    p = np.empty((m, 14, n))
+    p[:, 7] = 1.0
+    x_in = np.empty((m, 8, n))  # [t, 1, q] of the input edges (re-rooting only)
+    x_in[:, 3] = 1.0
+    q_c = np.empty((m, 4, n))
+    q_d = np.empty((m, 4, n))
+    rel_d = np.empty((m, 4, n))
+    y = np.empty((m, 4, n))  # (w, v) of the result
+    tmp = np.empty((m, n))
+    # the covariances in δ units from those in v units, exactly (powers of two)
+    s = np.array([1.0, 1.0, 1.0, 2.0, 2.0, 2.0])
+    ss = s[:, None] * s[None, :]
+    for lo in range(0, n_frames, step):
+        hi = min(lo + step, n_frames)
+        k = hi - lo
+        p_k, q_c_k, q_d_k, rel_d_k, y_k, tmp_k = (
+            p[:k], q_c[:k], q_d[:k], rel_d[:k], y[:k], tmp[:k])
+        src = np.swapaxes(edges[lo:hi], 1, 2)
+        if a_p is not None and l_p is not None:
+            x_k = x_in[:k]
+            x_k[:, :3] = src[:, :3]
+            x_k[:, 4:] = src[:, 3:]
+            np.einsum("ijn,mjn->min", a_p, x_k[:, :4], out=p_k[:, 4:7])
+            np.einsum("ijn,mjn->min", l_p, x_k[:, 4:], out=q_c_k)
+        else:
+            p_k[:, 4:7] = src[:, :3]
+            q_c_k[...] = src[:, 3:]
+        if pin is not None and pin[lo:hi].any():
+            q_c_k[pin[lo:hi]] = np.array([1.0, 0.0, 0.0, 0.0])[:, None]
+        np.einsum("ijn,mjn->min", a_s, p_k[:, 4:8], out=p_k[:, 8:11])
+        np.einsum("ijn,mjn->min", l_s, q_c_k, out=q_d_k)
+        # reference rotation: chordal mean of q_C on the hemisphere of its first sample
+        np.einsum("mkn,mk->mn", q_c_k, q_c_k[:, :, 0], out=tmp_k)
+        np.add(tmp_k, 0.0, out=tmp_k)  # -0.0 -> +0.0: only a negative dot flips
+        np.copysign(1.0, tmp_k, out=tmp_k)
+        q_ref = np.matmul(q_c_k, tmp_k[..., None])[..., 0]
+        q_ref /= np.linalg.norm(q_ref, axis=-1, keepdims=True)
+        # v of C and D: q_ref⁻¹ q on the hemisphere of the identity
+        l_inv = _lmul_rows(q_ref * _CONJ)
+        np.matmul(l_inv, q_c_k, out=p_k[:, 0:4])
+        np.matmul(l_inv, q_d_k, out=rel_d_k)
+        _flip_to_identity(p_k[:, 0:4])
+        _flip_to_identity(rel_d_k)
+        np.subtract(rel_d_k[:, 1:], p_k[:, 1:4], out=p_k[:, 11:14])
+        mean = p_k.mean(axis=-1)  # (k, 14)
+        p_k[:, 1:7] -= mean[:, 1:7, None]
+        p_k[:, 8:14] -= mean[:, 8:14, None]
+        # one product of the 13 rows 1..13 with Δ gives cov(p_C, Δ) and cov(Δ), [t, v] order
+        p_1 = p_k[:, 1:]
+        cross = np.matmul(p_1, np.swapaxes(p_1[:, 7:], 1, 2))  # (k, 13, 6)
+        cross /= n - 1
+        c_cd = cross[:, _PC] * ss
+        c_a = -0.5 * (c_cd + np.swapaxes(c_cd, 1, 2))
+        gain = (c_a @ scaled_pinv(cross[:, _DELTA] * ss)) * (s / s[:, None])
+        # [t, v] of the result = p_C + K Δ as one matrix on the rows 1..13 (ones at 6)
+        w = np.zeros((k, 6, 13))
+        w[:, :, _DELTA] = gain
+        w[:, np.arange(6), _PC] = 1.0
+        w[:, :, 6] = mean[:, _PC + 1] + np.einsum("mij,mj->mi", gain, mean[:, _DELTA + 1])
+        np.matmul(np.swapaxes(p_1, 1, 2), np.swapaxes(w[:, :3], 1, 2), out=out[lo:hi, :, :3])
+        np.matmul(w[:, 3:], p_1, out=y_k[:, 1:])
+        # back from the chart: (w, v) with w = sqrt(1 − |v|²), unit unless |v| > 1; q_ref (w, v)
+        np.einsum("mkn,mkn->mn", y_k[:, 1:], y_k[:, 1:], out=tmp_k)
+        np.subtract(1.0, tmp_k, out=y_k[:, 0])
+        np.maximum(y_k[:, 0], 0.0, out=y_k[:, 0])
+        np.sqrt(y_k[:, 0], out=y_k[:, 0])
+        if tmp_k.max(initial=0.0) > 1.0:
+            y_k[:, 1:] /= np.sqrt(np.maximum(tmp_k, 1.0))[:, None]
+        np.matmul(np.swapaxes(y_k, 1, 2), np.swapaxes(_lmul_rows(q_ref), 1, 2),
+                  out=out[lo:hi, :, 3:])
+    return out

@@ -43,6 +43,7 @@ from mcsm.core.at import (
     invert,
     mean_and_cov,
     merge_correlated,
+    merge_correlated_shifted,
     relative,
     sample_cov,
     scaled_eigh,
@@ -524,6 +525,8 @@ class StochasticMap:
         """PAPER Fig. 3: re-root at a, G' = G ⊗ X, E_j' = E_j ⊗ (G' ⊕ G^R ⊕ E_j)."""
         cid = self._where[a]
         c = self._comps[cid]
+        if self.space == "tangent":
+            return self._paper_update_tangent(cid, c, a, b, x, point)
         if c.frames[0] != a:
             # no canonicalisation here: every re-rooted edge goes through a merge, whose
             # output lies on the hemisphere of its reference rotation
@@ -547,6 +550,44 @@ class StochasticMap:
         edges[0] = identity(self.n_samples)
         self._check_finite(edges, "the loop closure")
         self._install(_Component(c.frames, c.is_point, edges), new_frames=[], cid=cid)
+        return UpdateResult("loop_closure", a, ())
+
+    def _paper_update_tangent(self, cid: int, c: _Component, a: str, b: str, x: Array,
+                              point: bool) -> UpdateResult:
+        """:meth:`_paper_update` in the tangent chart, fused: the re-rooting, the shift and the
+        merge of every other edge happen block by block in one pass over the component
+        (:func:`mcsm.core.at.merge_correlated_shifted`); same mathematics, same results up to
+        rounding."""
+        n = self.n_samples
+        k, ib_old = c.index[a], c.index[b]
+        n_frames = len(c.frames)
+        order = [k] + [i for i in range(n_frames) if i != k]
+        is_point = c.is_point[order]
+        x_k_r = invert(c.edges[k]) if k != 0 else None
+        g = c.edges[ib_old] if x_k_r is None else compound(x_k_r, c.edges[ib_old])
+        if x_k_r is not None and c.is_point[ib_old]:
+            g[:, 3:] = (1.0, 0.0, 0.0, 0.0)
+        self._check_finite(g, "re-rooting")
+        if point:
+            g_new = g.copy()
+            g_new[:, :3] = _merge_points(g[:, :3], x)
+        else:
+            g_new = merge_correlated(g, x, self.space)
+        shift = compound(g_new, invert(g))
+        edges = np.empty_like(c.edges)
+        # old edges 0..k-1 become 1..k, old k+1.. keep their index; old k becomes the root
+        for lo, hi, dst in ((0, k, 1), (k + 1, n_frames, k + 1)):
+            if hi > lo:
+                merge_correlated_shifted(c.edges[lo:hi], shift, pre=x_k_r,
+                                         pin=c.is_point[lo:hi] if x_k_r is not None else None,
+                                         out=edges[dst:dst + hi - lo])
+        ib = order.index(ib_old)
+        edges[ib] = g_new
+        self._pin_points(edges, is_point)
+        edges[0] = identity(n)
+        self._check_finite(edges, "the loop closure")
+        self._install(_Component([c.frames[i] for i in order], is_point, edges), new_frames=[],
+                      cid=cid)
         return UpdateResult("loop_closure", a, ())
 
     # ------------------------------------------------------------------ case II: joint
