@@ -200,13 +200,14 @@ UpdateFn = Callable[[object, int, int, Array, Array, np.random.Generator], None]
 
 
 EXACT_MOMENTS = False  # set by --exact-moments: observation samples with exact mean/covariance
+LEGACY_SAMPLER = False  # set by --legacy-sampler: the 30bbb71 random stream (6 normals/sample)
 
 
 def plain_update(smap: object, i: int, j: int, z: Array, cov: Array,
                  rng: np.random.Generator) -> None:
     """One ``update(p_i, p_j, samples)`` with samples drawn around the measurement."""
     n = smap.n_samples  # type: ignore[attr-defined]
-    x = sample_measurement(z, cov, n, rng=rng, exact=EXACT_MOMENTS)
+    x = sample_measurement(z, cov, n, rng=rng, exact=EXACT_MOMENTS, legacy=LEGACY_SAMPLER)
     smap.update(frame(i), frame(j), x)  # type: ignore[attr-defined]
 
 
@@ -647,8 +648,9 @@ def main(args: argparse.Namespace) -> list[Row]:
     print(f"numpy {np.__version__}, python {platform.python_version()}, "
           f"cores {os.cpu_count()}, load average {os.getloadavg()[0]:.1f}, "
           f"core commit {_core_commit()}")
-    global EXACT_MOMENTS
+    global EXACT_MOMENTS, LEGACY_SAMPLER
     EXACT_MOMENTS = bool(args.exact_moments)
+    LEGACY_SAMPLER = bool(args.legacy_sampler)
     shrink = args.shrink if args.shrink is not None and args.shrink >= 0 else None
     rows: list[Row] = []
     for scenario in args.scenarios:
@@ -715,6 +717,9 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
                          "'adaptive[strength]' (inflation from the innovation statistics)")
     ap.add_argument("--exact-moments", action="store_true",
                     help="draw each measurement's N samples with exact mean and covariance")
+    ap.add_argument("--legacy-sampler", action="store_true",
+                    help="measurement samples from the first simulator's random stream (6 normals "
+                         "per sample even when planar): reproduces rows run before commit 952504d")
     ap.add_argument("--no-gtsam", action="store_true")
     ap.add_argument("--no-timing", action="store_true")
     ap.add_argument("--timing-m", type=int, nargs="+", default=[500, 1000, 2500])

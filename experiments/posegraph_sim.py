@@ -264,7 +264,8 @@ class PoseGraph:
 
 
 def sample_measurement(
-    z: Array, cov: Array, n_samples: int, *, rng: np.random.Generator, exact: bool = False
+    z: Array, cov: Array, n_samples: int, *, rng: np.random.Generator, exact: bool = False,
+    legacy: bool = False,
 ) -> Array:
     """Draw an AT ``(n_samples, 7)`` centred on measurement ``z`` with tangent covariance ``cov``.
 
@@ -282,6 +283,10 @@ def sample_measurement(
         If True, the tangent deviations are centred and whitened so that their sample mean is
         exactly 0 and their sample covariance (``ddof=1``) exactly ``cov`` (needs
         ``n_samples`` > the rank of ``cov``); the rows stay independent draws otherwise.
+    legacy : bool
+        If True, draw 6 standard normals per sample whatever the rank of ``cov``, as the first
+        version of this function did (commit 30bbb71). Same distribution, but another random
+        stream for a planar ``cov``: only for reproducing runs made with that version.
 
     Returns
     -------
@@ -290,6 +295,10 @@ def sample_measurement(
         directions where ``cov`` is zero (planar: z, roll, pitch stay 0).
     """
     w, v = np.linalg.eigh(cov)
+    if legacy:
+        delta = rng.standard_normal((n_samples, 6)) @ (v * np.sqrt(np.clip(w, 0.0, None))).T
+        delta[:, np.diag(cov) == 0.0] = 0.0
+        return perturb(np.broadcast_to(z, (n_samples, 7)), delta)
     live = w > 1e-12 * max(float(w.max()), 1e-300)
     root = v[:, live] * np.sqrt(w[live])
     white = rng.standard_normal((n_samples, int(live.sum())))

@@ -264,3 +264,37 @@ def test_adaptive_inflation_reacts_to_surprising_loop_closures_only() -> None:
     assert honest.state_digest() != surprised.state_digest()
     with pytest.raises(InvalidOperation):
         StochasticMap(n, inflation="sometimes")
+
+
+@pytest.mark.parametrize("space", ["tangent", "quaternion"])
+def test_planar_loop_closures_count_three_dof_and_keep_dead_dimensions_zero(space: str) -> None:
+    """Planar: z, qx, qy have exactly zero variance; the adaptive NIS counts the 3 live dof
+    (not 6, nor 4 in the quaternion space, where the unit norm removes one of qw, qz).
+
+    Each trial is a fresh two-pose map (odometry x0→x1, then an honest loop closure x0→x1 drawn
+    around an independent measurement): the innovation's covariance is P + R, so the NIS per
+    dof averages to 1 when the 3 live dof are counted (0.5 if the dead ones were too).
+    """
+    rng = np.random.default_rng(312)
+    n, trials = 200, 600
+    sd = np.array([0.05, 0.03, 0.02])  # x (m), y (m), yaw (rad) of odometry and loop closure
+
+    def planar(mean: np.ndarray) -> np.ndarray:
+        d = mean + sd * rng.standard_normal((n, 3))
+        x = np.zeros((n, 7))
+        x[:, :2] = d[:, :2]
+        x[:, 3:] = qexp(np.c_[np.zeros((n, 2)), d[:, 2]])
+        return x
+
+    truth = np.array([1.0, 0.2, 0.3])
+    nis = []
+    for _ in range(trials):
+        m = StochasticMap(n, space=space, inflation="adaptive")
+        m.update("x0", "x1", planar(truth + sd * rng.standard_normal(3)))
+        m.update("x0", "x1", planar(truth + sd * rng.standard_normal(3)))
+        nis.append((m._nis_avg - 0.95) / 0.05)  # one closure: avg = 0.95 · 1 + 0.05 · NIS
+        e = m.edges("x0")
+        assert not np.any(e[..., [2, 4, 5]])  # dead dimensions exactly zero
+    # NIS/dof of one closure is about chi2(3)/3: spread sqrt(2/3); plus the 1/N-order bias of
+    # the sample S⁻¹ (about (N - 1) / (N - 5) - 1 = 2 %)
+    assert abs(np.mean(nis) - 1.0) < 4.0 * np.sqrt(2.0 / 3.0) / np.sqrt(trials) + 0.03

@@ -700,9 +700,16 @@ class StochasticMap:
         if self.inflation != "adaptive":
             return float(self.inflation), self._nis_avg
         n = yc.shape[0]
+        innovation = z.mean(axis=0) - y_mean
+        if yc.shape[1] == 7:
+            # quaternion space: a unit quaternion has 3 dof, not 4; the radial direction at the
+            # mean carries only second-order spread and would be counted as one more dof
+            # (4 planar, 7 in 3-D), diluting the NIS. Project onto the tangent plane at q̄.
+            q_bar = y_mean[3:] / np.linalg.norm(y_mean[3:])
+            yc, z, innovation = (_tangent_part(a, q_bar) for a in (yc, z, innovation))
         s = yc.T @ yc / (n - 1) + sample_cov(z)
         d, lam, v = scaled_eigh(s)
-        u = v.T @ ((z.mean(axis=0) - y_mean) * d)
+        u = v.T @ (innovation * d)
         live = lam > 0.0
         nis = float(np.sum(u[live] ** 2 / lam[live])) / max(1, int(live.sum()))
         avg = (1.0 - ADAPT_RATE) * self._nis_avg + ADAPT_RATE * nis
@@ -717,6 +724,13 @@ class StochasticMap:
         y, q_ref = to_space(h, self.space)
         z, _ = to_space(x, self.space, q_ref)
         return y, z
+
+
+def _tangent_part(a: Array, q_bar: Array) -> Array:
+    """``a`` ``(..., 7)`` with the quaternion part's component along ``q_bar`` removed."""
+    out = a.copy()
+    out[..., 3:] -= (a[..., 3:] @ q_bar)[..., None] * q_bar
+    return out
 
 
 def _merge_points(p_g: Array, p_x: Array) -> Array:
