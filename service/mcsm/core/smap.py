@@ -533,12 +533,7 @@ class StochasticMap:
             c = self._rerooted(c, c.index[a], canonical=False)
         ib = c.index[b]
         g = c.edges[ib]
-        if point:
-            g_new = g.copy()
-            g_new[:, :3] = _merge_points(g[:, :3], x)
-        else:
-            g_new = merge_correlated(g, x, self.space)
-        shift = compound(g_new, invert(g))
+        g_new, shift = self._merge_main_edge(g, x, point)
         others = np.ones(len(c.frames), dtype=bool)
         others[[0, ib]] = False
         edges = c.edges.copy()
@@ -551,6 +546,15 @@ class StochasticMap:
         self._check_finite(edges, "the loop closure")
         self._install(_Component(c.frames, c.is_point, edges), new_frames=[], cid=cid)
         return UpdateResult("loop_closure", a, ())
+
+    def _merge_main_edge(self, g: Array, x: Array, point: bool) -> tuple[Array, Array]:
+        """The merged main edge G' = G ⊗ X of PAPER Fig. 3 and the shift G' ⊕ G^R."""
+        if point:
+            g_new = g.copy()
+            g_new[:, :3] = _merge_points(g[:, :3], x)
+        else:
+            g_new = merge_correlated(g, x, self.space)
+        return g_new, compound(g_new, invert(g))
 
     def _paper_update_tangent(self, cid: int, c: _Component, a: str, b: str, x: Array,
                               point: bool) -> UpdateResult:
@@ -568,12 +572,7 @@ class StochasticMap:
         if x_k_r is not None and c.is_point[ib_old]:
             g[:, 3:] = (1.0, 0.0, 0.0, 0.0)
         self._check_finite(g, "re-rooting")
-        if point:
-            g_new = g.copy()
-            g_new[:, :3] = _merge_points(g[:, :3], x)
-        else:
-            g_new = merge_correlated(g, x, self.space)
-        shift = compound(g_new, invert(g))
+        g_new, shift = self._merge_main_edge(g, x, point)
         edges = np.empty_like(c.edges)
         # old edges 0..k-1 become 1..k, old k+1.. keep their index; old k becomes the root
         for lo, hi, dst in ((0, k, 1), (k + 1, n_frames, k + 1)):
