@@ -94,7 +94,7 @@ def _pool(threads: int) -> ThreadPoolExecutor:
 
 def default_threads() -> int:
     """Threads for the joint update's block passes: the cores this process may use, at
-    most 4 (the passes are memory-bound; more threads stop paying)."""
+    most 4 (measured here on 2 cores only)."""
     try:
         cores = len(os.sched_getaffinity(0))
     except AttributeError:  # not on Linux
