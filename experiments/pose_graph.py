@@ -15,6 +15,11 @@ same measurements and noise model). Printed per (scenario, method, space):
 * non-finite values anywhere in the final means or covariances;
 * time per loop closure (mean over the run).
 
+Besides the map, each scenario gets an exact-covariance EKF row (``--ekf exact``, the same
+sequential problem with a dense covariance: it shows how far a filter that never relinearises is
+from the batch optimum) and optionally ``--ekf shrink`` (the EKF's gains damped by the map's
+correlation-shrink factor for N samples: what the shrink's bias costs without sampling noise).
+
 A second part times single loop closures on maps of M = 500, 1000, 2500 poses for N = 200, 1000
 (the component is built with ``import_component`` from sampled odometry chains, so only the case II
 update is timed).
@@ -476,6 +481,29 @@ def run_config(
     return row, run
 
 
+def run_ekf_row(graph: PoseGraph, variant: str, *, n_samples: int, shrink: float | None,
+                scenario: str, seed: int, ate_gtsam: float, ate_dr: float) -> tuple[Row, Array]:
+    """Run the exact-covariance EKF (:mod:`experiments.baselines.ekf_posegraph`) on ``graph``.
+
+    ``variant`` ``"exact"``: the plain EKF; ``"shrink"``: its gains multiplied by the map's
+    correlation-shrink factor for an ``n_samples`` estimate (the shrink's bias alone).
+    """
+    from experiments.baselines.ekf_posegraph import run_ekf_posegraph
+
+    c = 4.0 if shrink is None else shrink
+    t0 = time.perf_counter()
+    ekf = run_ekf_posegraph(graph, shrink_n=n_samples if variant == "shrink" else None,
+                            shrink_c=c)
+    run = MapRun(ekf.means, ekf.covs, loop_times_s=ekf.loop_times_s)
+    config: dict[str, object] = {
+        "method": "ekf", "space": "-", "analysis": "exact" if variant == "exact" else
+        f"shrink{c:g}@N", "loop_update": "single", "shrink": None if variant == "exact" else c,
+        "inflation": 1.0, "n_samples": n_samples if variant == "shrink" else 0}
+    row = evaluate(graph, run, scenario=scenario, config=config, seed=seed, ate_gtsam=ate_gtsam,
+                   ate_dr=ate_dr, run_s=time.perf_counter() - t0)
+    return row, ekf.means
+
+
 # ---------------------------------------------------------------------------------------------
 # Timing of single loop closures
 # ---------------------------------------------------------------------------------------------
@@ -666,6 +694,13 @@ def main(args: argparse.Namespace) -> list[Row]:
         curves: dict[str, Array] = {"dead reckoning": dr}
         if opt is not None:
             curves["GTSAM"] = opt
+        for variant in args.ekf:
+            row, means = run_ekf_row(graph, variant, n_samples=args.n_samples,
+                                     shrink=shrink, scenario=scenario, seed=args.seed,
+                                     ate_gtsam=ate_gt, ate_dr=ate_dr)
+            rows.append(row)
+            print("  " + _fmt_row(row), flush=True)
+            curves[f"EKF {variant}"] = means
         for method in args.methods:
             for space in args.spaces:
                 for loop_update in args.loop_updates:
@@ -720,6 +755,10 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--legacy-sampler", action="store_true",
                     help="measurement samples from the first simulator's random stream (6 normals "
                          "per sample even when planar): reproduces rows run before commit 952504d")
+    ap.add_argument("--ekf", nargs="*", default=["exact"], choices=["exact", "shrink"],
+                    help="exact-covariance EKF rows (experiments/baselines/ekf_posegraph.py): "
+                         "'exact', and 'shrink' = its gains damped by the map's shrink factor "
+                         "for N samples (the shrink's bias alone); none: --ekf with no value")
     ap.add_argument("--no-gtsam", action="store_true")
     ap.add_argument("--no-timing", action="store_true")
     ap.add_argument("--timing-m", type=int, nargs="+", default=[500, 1000, 2500])
