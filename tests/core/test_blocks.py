@@ -36,7 +36,8 @@ def _run(threads: int, **opts: object) -> StochasticMap:
 
 
 @pytest.mark.parametrize("opts", [{}, {"space": "quaternion"}, {"inflation": 1.01},
-                                  {"inflation": "adaptive", "shrink": None}])
+                                  {"inflation": "adaptive", "shrink": None},
+                                  {"gain": "endpoints"}, {"gain": "endpoints", "shrink": None}])
 def test_digest_does_not_depend_on_blocks_or_threads(monkeypatch: pytest.MonkeyPatch,
                                                      opts: dict[str, object]) -> None:
     one_block = _run(1, **opts).state_digest()

@@ -14,6 +14,15 @@ Case II (loop closure) has two update methods:
   the edge with ``h`` and ``w_i`` a per-sample weight vector from the analysis rule
   (:mod:`mcsm.core.analysis`). Two products over the sample axis, O(M·N).
 
+  ``C_xy`` comes from one of two estimators (``gain``): ``"direct"`` takes every edge's sample
+  cross-covariance with ``h`` and damps each entry by its significance (correlation shrink);
+  ``"endpoints"`` regresses every edge on the principal components of the two endpoint edges
+  ``r→a``, ``r→b`` and chains that regression with the components' cross-covariance with
+  ``h`` (:func:`endpoint_cross_covariance`), so that an edge's gain is judged against the part
+  of its spread the endpoints do not explain. Measured on pose graphs (issue 8): most of the
+  information of a loop closure reaches edges whose correlation with ``h`` is below the
+  direct shrink's noise floor but whose correlation with the endpoints is high.
+
 Every operation computes into new arrays and swaps them in at the end, after checks: a failing
 call raises an :class:`mcsm.errors.McsmError` and leaves the map bit-identical.
 """
@@ -35,6 +44,8 @@ import numpy.typing as npt
 from mcsm.core import analysis as an
 from mcsm.core.at import (
     QUAT_NORM_TOL,
+    RTOL,
+    ZERO_VARIANCE,
     Space,
     canonicalize,
     check_samples,
@@ -49,7 +60,7 @@ from mcsm.core.at import (
     scaled_eigh,
     to_space,
 )
-from mcsm.core.quat import qconj, qrot
+from mcsm.core.quat import _L_INDEX, _L_SIGN, qconj, qrot
 from mcsm.errors import (
     FrameExists,
     InvalidOperation,
@@ -68,6 +79,7 @@ METHODS = ("joint", "paper")
 # adaptive inflation (issue 8): running-average rate, strength, largest factor
 ADAPT_RATE, ADAPT_STRENGTH, ADAPT_MAX = 0.05, 0.008, 1.01
 SPACES = ("tangent", "quaternion")
+GAINS = ("direct", "endpoints")
 # The joint update walks the edges in blocks of about this many bytes (a few frames), so that
 # its chain of kernels on one block stays in the core's cache; see _blocks.
 BLOCK_BYTES = 2 << 20
@@ -172,6 +184,12 @@ class StochasticMap:
         normalised innovation squared per dof (NIS) of the loop closures,
         ``λ = clip(1 + 0.008 (avg − 1), 1, 1.01)``, ``avg ← 0.95 avg + 0.05 NIS``; an honest
         map has NIS ≈ 1 and so gets no inflation (measured on 3-D pose graphs, issue 8)
+    gain : how the joint update estimates every edge's cross-covariance with the predicted
+        observation: ``"direct"`` (default; the sample cross-covariance, shrunk entry by entry)
+        or ``"endpoints"`` (every edge regressed on the principal components of the two
+        endpoint edges, then those on the observation; tangent space only; see
+        :func:`endpoint_cross_covariance`). Better on planar pose graphs, not on 3-D ones
+        (``experiments/results/pose_graph_summary.md``)
     threads : threads for the joint update's passes over the edges (default
         :func:`default_threads`). Not part of :meth:`options` or the state: every thread
         count gives bit-identical results.
@@ -186,6 +204,7 @@ class StochasticMap:
         analysis: str = "ensrf",
         shrink: float | None = 4.0,
         inflation: float | str = 1.0,
+        gain: str = "direct",
         threads: int | None = None,
     ) -> None:
         if not isinstance(n_samples, int) or isinstance(n_samples, bool) or n_samples < 2:
@@ -202,6 +221,10 @@ class StochasticMap:
                 isinstance(inflation, (int, float)) and np.isfinite(inflation)
                 and 1.0 <= inflation < 2.0):
             raise InvalidOperation(f"inflation must be in [1, 2) or 'adaptive', got {inflation!r}")
+        if gain not in GAINS:
+            raise InvalidOperation(f"gain must be one of {GAINS}, got {gain!r}")
+        if gain == "endpoints" and space != "tangent":
+            raise InvalidOperation("gain='endpoints' works in the tangent space only")
         if threads is not None and (not isinstance(threads, int) or isinstance(threads, bool)
                                     or not 1 <= threads <= 64):
             raise InvalidOperation(f"threads must be None or an integer in [1, 64], "
@@ -212,6 +235,7 @@ class StochasticMap:
         self.analysis = analysis
         self.shrink = None if shrink is None else float(shrink)
         self.inflation: float | str = inflation if inflation == "adaptive" else float(inflation)
+        self.gain = gain
         self._nis_avg = 1.0  # running NIS average of adaptive inflation (part of the state)
         self._comps: dict[int, _Component] = {}
         self._where: dict[str, int] = {}  # frame -> component id
@@ -225,7 +249,8 @@ class StochasticMap:
     def options(self) -> dict[str, Any]:
         """The constructor arguments, as a plain dict (round-trips through from_options)."""
         return {"n_samples": self.n_samples, "method": self.method, "space": self.space,
-                "analysis": self.analysis, "shrink": self.shrink, "inflation": self.inflation}
+                "analysis": self.analysis, "shrink": self.shrink, "inflation": self.inflation,
+                "gain": self.gain}
 
     @classmethod
     def from_options(cls, options: dict[str, Any]) -> StochasticMap:
@@ -267,7 +292,12 @@ class StochasticMap:
     def state_digest(self) -> str:
         """SHA-256 (hex) of the whole state: options, components, names, flags, sample bytes."""
         h = hashlib.sha256()
-        h.update(json.dumps(self.options(), sort_keys=True).encode())
+        options = self.options()
+        if options["gain"] == "direct":
+            # the arithmetic of every map made before ``gain`` existed: same digest as then,
+            # so older recordings still verify
+            del options["gain"]
+        h.update(json.dumps(options, sort_keys=True).encode())
         if self.inflation == "adaptive":
             h.update(np.float64(self._nis_avg).tobytes())
         h.update(json.dumps(list(self._order)).encode())
@@ -614,34 +644,10 @@ class StochasticMap:
 
         edges = c.edges
         blocks = _blocks(edges.shape[0], n)
-        # Pass 1 gives every edge's cross-covariance with the predicted observation and its
-        # mean ([yc, 1] is (N, p+1); result (M, p+1, 7)), and the sums of squares for the
-        # shrinkage.
-        lhs_t = np.concatenate((yc / (n - 1), np.full((n, 1), 1.0 / n)), axis=1).T[None]
-        moments = np.empty((edges.shape[0], lhs_t.shape[1], 7))
-        sq = np.empty((edges.shape[0], 7)) if self.shrink is not None else None
-
-        def first(s: slice) -> None:
-            e = edges[s]
-            np.matmul(lhs_t, e, out=moments[s])
-            if sq is not None:
-                np.einsum("mnk,mnk->mk", e, e, out=sq[s])
-
-        self._run_blocks(first, blocks)
-        c_xy_t = moments[:, :-1, :]
-        mean = moments[:, -1, :]  # (M, 7)
-        if self.space == "tangent":
-            # The ⊞ chart δ = 2 vec(q̄* q) around each edge's mean rotation q̄ (edges are stored
-            # on q̄'s hemisphere). A change Δ of δ is the quaternion change ½ q̄ ⊗ (0, Δ), so
-            # in this chart the update is the quaternion one with every cross-covariance
-            # projected onto the tangent plane at q̄: no log/exp over the M·N samples.
-            q_bar = mean[:, 3:] / np.linalg.norm(mean[:, 3:], axis=1, keepdims=True)
-            radial = np.einsum("mpk,mk->mp", c_xy_t[..., 3:], q_bar)
-            c_xy_t[..., 3:] -= radial[..., None] * q_bar[:, None, :]
-        if sq is not None:
-            assert self.shrink is not None
-            var_x = np.clip(sq / n - mean**2, 0.0, None) * (n / (n - 1))
-            c_xy_t = an.shrink_correlations(c_xy_t, var_x, yc, self.shrink)
+        if self.gain == "endpoints":
+            c_xy_t, mean = self._cross_endpoints(edges, ia, ib, point, yc, blocks)
+        else:
+            c_xy_t, mean = self._cross_direct(edges, yc, blocks)
         # Finite factors with a bounded product give finite increments: this replaces a full
         # isfinite pass over the (M, N, 7) result.
         bound = float(np.abs(c_xy_t).max(initial=0.0)) * float(np.abs(w).max()) * w.shape[1]
@@ -678,6 +684,90 @@ class StochasticMap:
         self._spare = edges
         self._nis_avg = nis_avg
         return UpdateResult("loop_closure", c.root, ())
+
+    def _cross_direct(self, edges: Array, yc: Array,
+                      blocks: list[slice]) -> tuple[Array, Array]:
+        """``gain="direct"``: every edge's sample cross-covariance with the predicted observation,
+        ``(M, p, 7)``, shrunk entry by entry, and the edges' means ``(M, 7)`` (pass 1)."""
+        n = self.n_samples
+        # Pass 1 gives every edge's cross-covariance with the predicted observation and its
+        # mean ([yc, 1] is (N, p+1); result (M, p+1, 7)), and the sums of squares for the
+        # shrinkage.
+        lhs_t = np.concatenate((yc / (n - 1), np.full((n, 1), 1.0 / n)), axis=1).T[None]
+        moments = np.empty((edges.shape[0], lhs_t.shape[1], 7))
+        sq = np.empty((edges.shape[0], 7)) if self.shrink is not None else None
+
+        def first(s: slice) -> None:
+            e = edges[s]
+            np.matmul(lhs_t, e, out=moments[s])
+            if sq is not None:
+                np.einsum("mnk,mnk->mk", e, e, out=sq[s])
+
+        self._run_blocks(first, blocks)
+        c_xy_t = moments[:, :-1, :]
+        mean = moments[:, -1, :]  # (M, 7)
+        if self.space == "tangent":
+            # The ⊞ chart δ = 2 vec(q̄* q) around each edge's mean rotation q̄ (edges are stored
+            # on q̄'s hemisphere). A change Δ of δ is the quaternion change ½ q̄ ⊗ (0, Δ), so
+            # in this chart the update is the quaternion one with every cross-covariance
+            # projected onto the tangent plane at q̄: no log/exp over the M·N samples.
+            q_bar = mean[:, 3:] / np.linalg.norm(mean[:, 3:], axis=1, keepdims=True)
+            radial = np.einsum("mpk,mk->mp", c_xy_t[..., 3:], q_bar)
+            c_xy_t[..., 3:] -= radial[..., None] * q_bar[:, None, :]
+        if sq is not None:
+            assert self.shrink is not None
+            var_x = np.clip(sq / n - mean**2, 0.0, None) * (n / (n - 1))
+            c_xy_t = an.shrink_correlations(c_xy_t, var_x, yc, self.shrink)
+        return c_xy_t, mean
+
+    def _cross_endpoints(self, edges: Array, ia: int, ib: int, point: bool, yc: Array,
+                         blocks: list[slice]) -> tuple[Array, Array]:
+        """``gain="endpoints"``: the cross-covariances ``(M, p, 7)`` through the principal
+        components of the endpoint edges (:func:`mcsm.core.analysis.endpoint_cross_covariance`),
+        and the edges' means ``(M, 7)``.
+
+        Every edge is handled in its own tangent chart ``[t, δ]``, ``δ = 2 vec(q̄* q)``: pass 1
+        gives the edges' cross-covariances with the components and the second moments of
+        their translations and quaternions; a quaternion cross-covariance ``c_q`` is ``2 Bᵀ c_q``
+        in the chart (``B`` the last three columns of ``L(q̄)``), a chart covariance ``c_δ`` is
+        ``½ B c_δ`` back in the quaternion, on the tangent plane at ``q̄``.
+        """
+        n = self.n_samples
+        e_b = edges[ib]
+        v = np.concatenate((to_space(edges[ia], "tangent")[0],
+                            e_b[:, :3] if point else to_space(e_b, "tangent")[0]), axis=1)
+        pcs, lam = an.endpoint_components(v, ZERO_VARIANCE, RTOL)
+        k = lam.shape[0]
+        lhs_t = np.concatenate((pcs / (n - 1), np.full((n, 1), 1.0 / n)), axis=1).T[None]
+        m = edges.shape[0]
+        moments = np.empty((m, k + 1, 7))
+        sq_t = np.empty((m, 3))
+        sq_q = np.empty((m, 4, 4))
+
+        def first(s: slice) -> None:
+            e = edges[s]
+            np.matmul(lhs_t, e, out=moments[s])
+            np.einsum("mnk,mnk->mk", e[..., :3], e[..., :3], out=sq_t[s])
+            np.matmul(np.swapaxes(e[..., 3:], 1, 2), e[..., 3:], out=sq_q[s])
+
+        self._run_blocks(first, blocks)
+        mean = moments[:, -1, :]
+        q_bar = mean[:, 3:] / np.linalg.norm(mean[:, 3:], axis=1, keepdims=True)
+        basis = (q_bar[:, _L_INDEX] * _L_SIGN)[:, :, 1:]  # (M, 4, 3)
+        scale = n / (n - 1)
+        var_t = np.clip(sq_t / n - mean[:, :3] ** 2, 0.0, None) * scale
+        cov_q = (sq_q / n - mean[:, 3:, None] * mean[:, None, 3:]) * scale
+        var_d = 4.0 * np.einsum("mki,mkl,mli->mi", basis, cov_q, basis)
+        var_x = np.concatenate((var_t, np.clip(var_d, 0.0, None)), axis=1)
+        c_xp = moments[:, :-1, :]
+        c_xp_chart = np.concatenate(
+            (c_xp[..., :3], 2.0 * np.einsum("mki,mjk->mji", basis, c_xp[..., 3:])), axis=-1)
+        c_py = pcs.T @ yc / (n - 1)
+        var_y = np.einsum("np,np->p", yc, yc) / (n - 1)
+        c6 = an.endpoint_cross_covariance(c_xp_chart, var_x, lam, c_py, var_y, n, self.shrink)
+        c_xy_t = np.concatenate(
+            (c6[..., :3], 0.5 * np.einsum("mki,mpi->mpk", basis, c6[..., 3:])), axis=-1)
+        return c_xy_t, mean
 
     def _spare_buffer(self, shape: tuple[int, ...]) -> Array:
         """An uninitialised array of ``shape``: the edge array the last joint update replaced
