@@ -315,6 +315,7 @@ class Row:
     method: str
     space: str
     analysis: str
+    gain: str
     loop_update: str
     shrink: float
     inflation: float
@@ -424,7 +425,8 @@ def evaluate(
     ok = (not run.error) and nonfinite == 0 and bool(ratio <= 2.0) and bool(nees <= 2.0)
     return Row(
         scenario=scenario, method=str(config["method"]), space=str(config["space"]),
-        analysis=str(config["analysis"]), loop_update=str(config["loop_update"]),
+        analysis=str(config["analysis"]), gain=str(config.get("gain", "direct")),
+        loop_update=str(config["loop_update"]),
         shrink=float("nan") if config["shrink"] is None else float(config["shrink"]),  # type: ignore[arg-type]
         inflation=(float("nan") if config["inflation"] == "adaptive"
                    else float(config["inflation"])),  # type: ignore[arg-type]
@@ -448,6 +450,7 @@ def make_map(config: dict[str, object]) -> object:
         shrink=config["shrink"],  # type: ignore[arg-type]
         inflation=(config["inflation"] if config["inflation"] == "adaptive"
                    else float(config["inflation"])),  # type: ignore[arg-type]
+        gain=str(config.get("gain", "direct")),
     )
 
 
@@ -496,7 +499,8 @@ def run_ekf_row(graph: PoseGraph, variant: str, *, n_samples: int, shrink: float
                             shrink_c=c)
     run = MapRun(ekf.means, ekf.covs, loop_times_s=ekf.loop_times_s)
     config: dict[str, object] = {
-        "method": "ekf", "space": "-", "analysis": "exact" if variant == "exact" else
+        "method": "ekf", "space": "-", "gain": "-",
+        "analysis": "exact" if variant == "exact" else
         f"shrink{c:g}@N", "loop_update": "single", "shrink": None if variant == "exact" else c,
         "inflation": 1.0, "n_samples": n_samples if variant == "shrink" else 0}
     row = evaluate(graph, run, scenario=scenario, config=config, seed=seed, ate_gtsam=ate_gtsam,
@@ -556,15 +560,16 @@ def time_loop_closures(
                 copy_ms = _stream_pass_ms(m, n)
                 row = {
                     "M": m, "N": n, "method": cfg["method"], "space": cfg["space"],
-                    "analysis": cfg["analysis"], "median_ms": float(np.median(times)),
+                    "analysis": cfg["analysis"], "gain": cfg.get("gain", "direct"),
+                    "median_ms": float(np.median(times)),
                     "min_ms": float(np.min(times)), "max_ms": float(np.max(times)),
                     "repeats": len(times), "stream_pass_ms": copy_ms,
                     "passes": float(np.median(times)) / copy_ms,
                 }
                 rows.append(row)
-                print("  M={M:5d} N={N:5d} {method:5s} {space:10s} median {median_ms:9.2f} ms "
-                      "(min {min_ms:.2f}, max {max_ms:.2f}, {repeats} runs) = {passes:.1f} "
-                      "streaming passes".format(**row), flush=True)
+                print("  M={M:5d} N={N:5d} {method:5s} {space:10s} {gain:9s} "
+                      "median {median_ms:9.2f} ms (min {min_ms:.2f}, max {max_ms:.2f}, "
+                      "{repeats} runs) = {passes:.1f} streaming passes".format(**row), flush=True)
                 del smap
     return rows
 
@@ -632,11 +637,13 @@ def plot_timing(path: Path, rows: list[dict[str, object]]) -> None:
     except ImportError:
         return
     fig, ax = plt.subplots(figsize=(6, 4))
-    keys = sorted({(r["N"], r["method"], r["space"]) for r in rows}, key=str)
+    keys = sorted({(r["N"], r["method"], r["space"], r.get("gain", "direct")) for r in rows},
+                  key=str)
     for key in keys:
-        sel = [r for r in rows if (r["N"], r["method"], r["space"]) == key]
+        sel = [r for r in rows
+               if (r["N"], r["method"], r["space"], r.get("gain", "direct")) == key]
         ax.loglog([r["M"] for r in sel], [r["median_ms"] for r in sel], "o-",
-                  label=f"N={key[0]} {key[1]} {key[2]}")
+                  label=f"N={key[0]} {key[1]} {key[2]} {key[3]}")
     ax.set_xlabel("poses in the component M")
     ax.set_ylabel("median time per loop closure (ms)")
     ax.legend(fontsize=7)
@@ -646,7 +653,8 @@ def plot_timing(path: Path, rows: list[dict[str, object]]) -> None:
 
 
 def _fmt_row(r: Row) -> str:
-    return (f"{r.scenario:3s} {r.method:5s} {r.space:10s} {r.analysis:5s} {r.loop_update:6s} "
+    return (f"{r.scenario:3s} {r.method:5s} {r.space:10s} {r.analysis:5s} {r.gain:9s} "
+            f"{r.loop_update:6s} "
             f"N={r.n_samples:<5d} ATE {r.ate_map_m:8.3f} m  GTSAM {r.ate_gtsam_m:6.3f}  "
             f"DR {r.ate_dead_reckoning_m:7.3f}  ratio {r.ate_ratio_to_gtsam:7.2f}  "
             f"NEES/dof {r.nees_per_dof:9.3g} (t {r.nees_t_per_dof:.3g}, r {r.nees_r_per_dof:.3g},"
@@ -703,10 +711,11 @@ def main(args: argparse.Namespace) -> list[Row]:
             curves[f"EKF {variant}"] = means
         for method in args.methods:
             for space in args.spaces:
-                for loop_update in args.loop_updates:
+                gains = args.gains if (method, space) == ("joint", "tangent") else ["direct"]
+                for gain, loop_update in ((g, u) for g in gains for u in args.loop_updates):
                     config: dict[str, object] = {
                         "n_samples": args.n_samples, "method": method, "space": space,
-                        "analysis": args.analysis, "shrink": shrink,
+                        "analysis": args.analysis, "shrink": shrink, "gain": gain,
                         "inflation": args.inflation, "loop_update": loop_update,
                     }
                     row, run = run_config(graph, config, scenario=scenario, seed=args.seed,
@@ -714,15 +723,16 @@ def main(args: argparse.Namespace) -> list[Row]:
                                           progress=args.progress)
                     rows.append(row)
                     print("  " + _fmt_row(row), flush=True)
-                    curves[f"{method}/{space}/{loop_update}"] = run.means
+                    curves[f"{method}/{space}/{gain}/{loop_update}"] = run.means
         plot_scenario(out / f"pose_graph_{scenario}{tag}.png", graph, curves)
     if rows:
         write_csv(out / f"pose_graph_runs{tag}.csv", [asdict(r) for r in rows])
     if not args.no_timing:
         print("\ntime per loop closure (3D, every pose kept):", flush=True)
         configs = [{"method": m, "space": s, "analysis": args.analysis, "shrink": shrink,
-                    "inflation": args.inflation} for m in args.timing_methods
-                   for s in args.spaces[:1]]
+                    "inflation": args.inflation, "gain": g} for m in args.timing_methods
+                   for s in args.spaces[:1]
+                   for g in (args.gains if (m, s) == ("joint", "tangent") else ["direct"])]
         trows = time_loop_closures(args.timing_m, args.timing_n, configs,
                                    repeats=args.timing_repeats, seed=args.seed)
         write_csv(out / f"pose_graph_timing{tag}.csv", trows)
@@ -743,6 +753,10 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--methods", nargs="+", default=["joint", "paper"])
     ap.add_argument("--spaces", nargs="+", default=["tangent", "quaternion"])
     ap.add_argument("--analysis", default="ensrf", choices=["ensrf", "denkf", "enkf"])
+    ap.add_argument("--gains", nargs="+", default=["direct", "endpoints"],
+                    choices=["direct", "endpoints"],
+                    help="cross-covariance estimators of the joint update (joint/tangent only; "
+                         "the other rows use 'direct')")
     ap.add_argument("--shrink", type=float, default=4.0,
                     help="correlation shrink c of the joint update (negative: none)")
     ap.add_argument("--inflation", type=lambda t: t if t == "adaptive" else float(t),

@@ -56,6 +56,10 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--inflation", type=_inflation, default=1.0, metavar="F|adaptive",
                    help="anomaly inflation per loop closure: a factor in [1, 2) or 'adaptive' "
                         "(default 1, none)")
+    s.add_argument("--gain", choices=("direct", "endpoints"), default="direct",
+                   help="cross-covariance estimator of the joint update: 'direct' (default) or "
+                        "'endpoints' (through the loop's two endpoint frames; better on planar "
+                        "pose graphs, tangent space only)")
     s.add_argument("--record", type=Path, default=None, metavar="PATH.mcap",
                    help="new recording file (default recordings/run-<UTC time>.mcap)")
     s.add_argument("--restore", type=Path, default=None, metavar="PATH.mcap",
@@ -140,7 +144,7 @@ def serve(args: argparse.Namespace) -> int:
         maps=list(dict.fromkeys(maps)), prefix=args.prefix,
         map_options={"n_samples": args.samples, "method": args.method, "space": args.space,
                      "analysis": args.analysis, "shrink": args.shrink,
-                     "inflation": args.inflation},
+                     "inflation": args.inflation, "gain": args.gain},
         record=record, restore=args.restore, checkpoint_every=max(1, args.checkpoint_every),
         queue_size=args.queue_size, fsync=args.fsync)
     try:
