@@ -489,20 +489,24 @@ def run_ekf_row(graph: PoseGraph, variant: str, *, n_samples: int, shrink: float
     """Run the exact-covariance EKF (:mod:`experiments.baselines.ekf_posegraph`) on ``graph``.
 
     ``variant`` ``"exact"``: the plain EKF; ``"shrink"``: its gains multiplied by the map's
-    correlation-shrink factor for an ``n_samples`` estimate (the shrink's bias alone).
+    correlation-shrink factor for an ``n_samples`` estimate (the shrink's bias alone);
+    ``"shrink-endpoints"``: its gains formed by the map's ``gain="endpoints"`` estimator with
+    that shrink (that estimator's bias alone).
     """
     from experiments.baselines.ekf_posegraph import run_ekf_posegraph
 
     c = 4.0 if shrink is None else shrink
     t0 = time.perf_counter()
-    ekf = run_ekf_posegraph(graph, shrink_n=n_samples if variant == "shrink" else None,
-                            shrink_c=c)
+    damped = variant != "exact"
+    ekf = run_ekf_posegraph(graph, shrink_n=n_samples if damped else None, shrink_c=c,
+                            gain="endpoints" if variant == "shrink-endpoints" else "direct")
     run = MapRun(ekf.means, ekf.covs, loop_times_s=ekf.loop_times_s)
     config: dict[str, object] = {
-        "method": "ekf", "space": "-", "gain": "-",
-        "analysis": "exact" if variant == "exact" else
-        f"shrink{c:g}@N", "loop_update": "single", "shrink": None if variant == "exact" else c,
-        "inflation": 1.0, "n_samples": n_samples if variant == "shrink" else 0}
+        "method": "ekf", "space": "-",
+        "gain": "endpoints" if variant == "shrink-endpoints" else ("direct" if damped else "-"),
+        "analysis": f"shrink{c:g}@N" if damped else "exact", "loop_update": "single",
+        "shrink": c if damped else None, "inflation": 1.0,
+        "n_samples": n_samples if damped else 0}
     row = evaluate(graph, run, scenario=scenario, config=config, seed=seed, ate_gtsam=ate_gtsam,
                    ate_dr=ate_dr, run_s=time.perf_counter() - t0)
     return row, ekf.means
@@ -769,10 +773,12 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--legacy-sampler", action="store_true",
                     help="measurement samples from the first simulator's random stream (6 normals "
                          "per sample even when planar): reproduces rows run before commit 952504d")
-    ap.add_argument("--ekf", nargs="*", default=["exact"], choices=["exact", "shrink"],
+    ap.add_argument("--ekf", nargs="*", default=["exact"],
+                    choices=["exact", "shrink", "shrink-endpoints"],
                     help="exact-covariance EKF rows (experiments/baselines/ekf_posegraph.py): "
-                         "'exact', and 'shrink' = its gains damped by the map's shrink factor "
-                         "for N samples (the shrink's bias alone); none: --ekf with no value")
+                         "'exact'; 'shrink' = its gains damped by the map's shrink factor for N "
+                         "samples, 'shrink-endpoints' = formed by the endpoint estimator with "
+                         "that shrink (each estimator's bias alone); none: --ekf with no value")
     ap.add_argument("--no-gtsam", action="store_true")
     ap.add_argument("--no-timing", action="store_true")
     ap.add_argument("--timing-m", type=int, nargs="+", default=[500, 1000, 2500])

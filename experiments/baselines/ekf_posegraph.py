@@ -105,8 +105,35 @@ class EkfRun:
     loop_times_s: list[float]
 
 
+def _endpoint_gain_cross(p: Array, c_xy: Array, var_y: Array, ends: Array, h_v: Array,
+                         n_samples: int, c: float) -> Array:
+    """The map's ``gain="endpoints"`` estimator applied to exact covariances (its bias alone).
+
+    ``ends`` the 12 state indices of the two endpoints, ``h_v`` ``(p, 12)`` the observation's
+    Jacobian on them; see :func:`mcsm.core.analysis.endpoint_cross_covariance`.
+    """
+    c_vv = p[np.ix_(ends, ends)]
+    var_v = np.diagonal(c_vv)
+    live = var_v > 1e-20
+    scale = np.where(live, 1.0 / np.sqrt(np.where(live, var_v, 1.0)), 0.0)
+    lam, vec = np.linalg.eigh(c_vv * scale[:, None] * scale[None, :])
+    keep = lam > 1e-9 * lam.max()
+    lam, t = lam[keep], scale[:, None] * vec[:, keep]  # components = tᵀ v
+    c_xp = p[:, ends] @ t
+    c_py = t.T @ c_vv @ h_v.T
+    beta = c_xp / lam
+    var_e = np.clip(np.diagonal(p) - np.sum(c_xp * beta, axis=1), 0.0, None)
+    dof = max(n_samples - lam.size - 1, 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t2 = beta**2 * lam * dof / var_e[:, None]
+        f = np.where(t2 > 0, 1.0 - 2.0 * c / np.where(t2 > 0, t2, 1.0), 0.0)
+    beta = beta * np.clip(np.nan_to_num(f, nan=0.0), 0.0, 1.0)
+    r2 = c_py**2 / (lam[:, None] * np.where(var_y > 0, var_y, np.inf)[None, :])
+    return beta @ (c_py * shrink_factor(r2, n_samples, c))
+
+
 def run_ekf_posegraph(graph: PoseGraph, *, shrink_n: int | None = None,
-                      shrink_c: float = 4.0) -> EkfRun:
+                      shrink_c: float = 4.0, gain: str = "direct") -> EkfRun:
     """Run the EKF over ``graph``'s measurements in arrival order.
 
     Parameters
@@ -120,7 +147,13 @@ def run_ekf_posegraph(graph: PoseGraph, *, shrink_n: int | None = None,
         update is then the Joseph form of that gain.
     shrink_c : float
         The shrink constant c (the map's default is 4).
+    gain : {"direct", "endpoints"}
+        Which of the map's cross-covariance estimators the shrink imitates (with
+        ``shrink_n``): per entry of the gain, or through the endpoints' principal components.
     """
+    if gain not in ("direct", "endpoints"):
+        raise ValueError(f"gain must be 'direct' or 'endpoints', got {gain!r}")
+    gain_mode = gain
     n_poses = graph.n_poses
     x = np.zeros((n_poses, 7))
     x[0] = [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]
@@ -154,17 +187,23 @@ def run_ekf_posegraph(graph: PoseGraph, *, shrink_n: int | None = None,
         c_xy = p[:, sa] @ h_a.T + p[:, sb] @ h_b.T  # (d, p)
         s = h_a @ c_xy[sa] + h_b @ c_xy[sb] + r
         if shrink_n is None:
-            gain = np.linalg.solve(s, c_xy.T).T
-            p -= gain @ c_xy.T
+            k_gain = np.linalg.solve(s, c_xy.T).T
+            p -= k_gain @ c_xy.T
         else:
-            var_x = np.diagonal(p).copy()
             var_y = np.diagonal(s - r)
-            den = var_x[:, None] * var_y[None, :]
-            r2 = np.where(den > 0, c_xy**2 / np.where(den > 0, den, 1.0), 0.0)
-            gain = np.linalg.solve(s, (c_xy * shrink_factor(r2, shrink_n, shrink_c)).T).T
-            p += gain @ s @ gain.T - gain @ c_xy.T - c_xy @ gain.T
+            if gain_mode == "endpoints":
+                ends = np.r_[6 * i:6 * i + 6, 6 * j:6 * j + 6]
+                c_tilde = _endpoint_gain_cross(p, c_xy, var_y, ends, np.hstack((h_a, h_b)),
+                                               shrink_n, shrink_c)
+            else:
+                var_x = np.diagonal(p).copy()
+                den = var_x[:, None] * var_y[None, :]
+                r2 = np.where(den > 0, c_xy**2 / np.where(den > 0, den, 1.0), 0.0)
+                c_tilde = c_xy * shrink_factor(r2, shrink_n, shrink_c)
+            k_gain = np.linalg.solve(s, c_tilde.T).T
+            p += k_gain @ s @ k_gain.T - k_gain @ c_xy.T - c_xy @ k_gain.T
         p[...] = 0.5 * (p + p.T)
-        delta = (gain @ nu).reshape(known, 6)
+        delta = (k_gain @ nu).reshape(known, 6)
         x[:known, :3] += delta[:, :3]
         q = qmul(x[:known, 3:], qexp(delta[:, 3:]))
         x[:known, 3:] = q / np.linalg.norm(q, axis=1, keepdims=True)

@@ -1,12 +1,13 @@
-"""Regression guard for full-pose loop closures (issue 8): a short pose graph, fixed seeds.
+"""Regression guard for full-pose loop closures (issue 8): pose graphs, fixed seeds.
 
 The joint update (square-root analysis, correlation shrink c = 4, inflation 1.002 per loop
-closure, tangent space) runs over a short simulated 3D helix and a short planar graph at
-N = 200. The test fails if the absolute
-trajectory error or the NEES per degree of freedom of the poses drifts above the acceptance
-bounds of issue 8 (ATE ≤ 2x GTSAM's batch optimum, NEES/dof ≤ 2) or above a margin over what
-the current code measures, and if any value is non-finite. The full-size figures come from
-``experiments/pose_graph.py``.
+closure, tangent space) runs at N = 200 over short simulated 3D and planar graphs with the
+default ``gain="direct"``, and over issue 8's acceptance graphs (1000 poses, ~580 loop
+closures, seed 8) with ``gain="endpoints"``, the configuration recommended for pose graphs.
+The test fails if the absolute trajectory error or the NEES per degree of freedom of the poses
+drifts above the acceptance bounds of issue 8 (ATE ≤ 2x GTSAM's batch optimum, NEES/dof ≤ 2)
+or above a margin over what the current code measures, and if any value is non-finite. The
+figures over many seeds come from ``experiments/pose_graph.py``.
 """
 
 from __future__ import annotations
@@ -26,24 +27,29 @@ from experiments.pose_graph import (
 
 pytest.importorskip("mcsm")
 
-# Measured on the current code with these seeds (3D: ATE 0.253 m = 1.67x GTSAM, NEES/dof 1.52;
-# planar: ATE 0.170 m = 0.93x GTSAM, NEES/dof 0.65). The bounds leave room for platform
-# rounding and small changes of the core, not for a drift of the error or the consistency.
+# Measured on the current code with these seeds (short 3D: ATE 0.253 m = 1.67x GTSAM, NEES/dof
+# 1.52; short planar: ATE 0.170 m = 0.93x GTSAM, NEES/dof 0.65; acceptance 3D with the endpoint
+# gain: 0.191 m = 1.57x, NEES/dof 0.86; acceptance planar: 0.156 m = 1.84x, NEES/dof 0.57).
+# The bounds leave room for platform rounding and small changes of the core, not for a drift
+# of the error or the consistency.
 CASES = [
-    # scenario, poses, graph seed, map seed, max ATE (m), max NEES/dof
-    ("3d", 200, 80120, 80121, 0.30, 2.0),
-    ("2d", 200, 80122, 80123, 0.21, 1.0),
+    # scenario, poses, graph seed, map seed, gain, max ATE (m), max NEES/dof
+    ("3d", 200, 80120, 80121, "direct", 0.30, 2.0),
+    ("2d", 200, 80122, 80123, "direct", 0.21, 1.0),
+    ("3d", 1000, 8, 9, "endpoints", 0.22, 1.3),
+    ("2d", 1000, 8, 9, "endpoints", 0.168, 0.9),
 ]
 
 
-@pytest.mark.parametrize(("scenario", "poses", "seed", "map_seed", "max_ate", "max_nees"), CASES)
-def test_joint_update_on_short_pose_graph(scenario, poses, seed, map_seed, max_ate, max_nees):
+@pytest.mark.parametrize(("scenario", "poses", "seed", "map_seed", "gain", "max_ate", "max_nees"),
+                         CASES)
+def test_joint_update_on_pose_graphs(scenario, poses, seed, map_seed, gain, max_ate, max_nees):
     from mcsm import StochasticMap
 
     graph = make_graph(scenario, poses, seed)
-    assert graph.n_loops >= 30
+    assert graph.n_loops >= 30 if poses < 1000 else graph.n_loops >= 500
     smap = StochasticMap(200, method="joint", space="tangent", analysis="ensrf", shrink=4.0,
-                         inflation=1.002)
+                         inflation=1.002, gain=gain)
     run = run_map(graph, smap, rng=np.random.default_rng(map_seed), loop_update=plain_update)
     assert run.error == ""
     assert np.isfinite(run.means).all() and np.isfinite(run.covs).all()
