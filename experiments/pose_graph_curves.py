@@ -16,6 +16,7 @@ Usage::
 
     .venv/bin/python experiments/pose_graph_curves.py --scenario 2d --seed 8
     .venv/bin/python experiments/pose_graph_curves.py --scenario 2d --seed 8 --map-seeds 100 101
+    .venv/bin/python experiments/pose_graph_curves.py --scenario 3d --gain endpoints --inflation 1.002
 """
 
 from __future__ import annotations
@@ -54,7 +55,7 @@ def live_dof(smap: object) -> int:
 
 
 def run(scenario: str, seed: int, map_seed: int, every: int, space: str, inflation: str,
-        poses: int, n_samples: int) -> list[dict[str, float]]:
+        poses: int, n_samples: int, gain: str = "direct") -> list[dict[str, float]]:
     """Run one map and return one dict of figures per checkpoint."""
     from mcsm import StochasticMap
     from mcsm.core import smap as smap_mod
@@ -62,7 +63,7 @@ def run(scenario: str, seed: int, map_seed: int, every: int, space: str, inflati
     graph = make_graph(scenario, poses, seed)
     infl: float | str = inflation if inflation == "adaptive" else float(inflation)
     smap = StochasticMap(n_samples, method="joint", space=space, analysis="ensrf", shrink=4.0,
-                         inflation=infl)
+                         inflation=infl, gain=gain)
     # record the dof the adaptive inflation counts (a wrapper; the core is not changed)
     orig = smap_mod.StochasticMap._loop_inflation
 
@@ -123,7 +124,9 @@ def main() -> None:
     ap.add_argument("--map-seeds", type=int, nargs="*", default=None,
                     help="random streams of the measurement samples (default: seed + 1)")
     ap.add_argument("--space", default="tangent", choices=["tangent", "quaternion"])
-    ap.add_argument("--inflation", default="adaptive")
+    ap.add_argument("--inflation", default="adaptive",
+                    help="a factor per loop closure or 'adaptive' (default)")
+    ap.add_argument("--gain", default="direct", choices=["direct", "endpoints"])
     ap.add_argument("--poses", type=int, default=1000)
     ap.add_argument("--n-samples", type=int, default=200)
     ap.add_argument("--every", type=int, default=100)
@@ -132,11 +135,11 @@ def main() -> None:
     every = args.poses if args.final_only else args.every
     for ms in args.map_seeds or [args.seed + 1]:
         print(f"[{args.scenario}] seed {args.seed} map seed {ms} space {args.space} "
-              f"inflation {args.inflation} N={args.n_samples}", flush=True)
+              f"inflation {args.inflation} gain {args.gain} N={args.n_samples}", flush=True)
         print("  poses loops  ATE map  ATE GTSAM  ratio  NEES/dof (t, r)        "
               "dof counted  NIS avg  max|dead|")
         for r in run(args.scenario, args.seed, ms, every, args.space, args.inflation,
-                     args.poses, args.n_samples):
+                     args.poses, args.n_samples, args.gain):
             print(f"  {r['poses']:5d} {r['loops']:5d}  {r['ate_map']:7.3f}  {r['ate_gtsam']:9.3f}"
                   f"  {r['ratio']:5.2f}  {r['nees']:6.2f} ({r['nees_t']:5.2f}, {r['nees_r']:5.2f})"
                   f"   {r['dof_min']}-{r['dof_max']}         {r['nis_avg']:6.3f}  "
