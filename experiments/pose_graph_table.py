@@ -80,6 +80,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--tags", nargs="*", default=[], help="file tags: pose_graph_runs_<tag>.csv")
     ap.add_argument("--glob", default=None, help="or a glob in the results folder")
     ap.add_argument("--rows", action="store_true", help="also one line per run")
+    ap.add_argument("--methods", nargs="*", default=None, help="keep only these methods")
     ap.add_argument("--dir", type=Path, default=RESULTS)
     args = ap.parse_args(argv)
     paths = [args.dir / f"pose_graph_runs_{t}.csv" for t in args.tags]
@@ -89,6 +90,8 @@ def main(argv: list[str] | None = None) -> None:
     if missing or not paths:
         raise SystemExit(f"no such result files: {missing or 'none given'}")
     rows = load(paths)
+    if args.methods:
+        rows = [r for r in rows if r["method"] in args.methods]
     print("\n".join(tally(rows)))
     if args.rows:
         print()

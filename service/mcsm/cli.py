@@ -58,8 +58,8 @@ def _parser() -> argparse.ArgumentParser:
                         "(default 1, none)")
     s.add_argument("--gain", choices=("direct", "endpoints"), default="direct",
                    help="cross-covariance estimator of the joint update: 'direct' (default) or "
-                        "'endpoints' (through the loop's two endpoint frames; better on planar "
-                        "pose graphs, tangent space only)")
+                        "'endpoints' (through the loop's two endpoint frames; better on pose "
+                        "graphs, with --inflation 1.002 in 3-D; tangent space only)")
     s.add_argument("--record", type=Path, default=None, metavar="PATH.mcap",
                    help="new recording file (default recordings/run-<UTC time>.mcap)")
     s.add_argument("--restore", type=Path, default=None, metavar="PATH.mcap",

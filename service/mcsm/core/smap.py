@@ -188,8 +188,9 @@ class StochasticMap:
         observation: ``"direct"`` (default; the sample cross-covariance, shrunk entry by entry)
         or ``"endpoints"`` (every edge regressed on the principal components of the two
         endpoint edges, then those on the observation; tangent space only; see
-        :func:`endpoint_cross_covariance`). Better on planar pose graphs, not on 3-D ones
-        (``experiments/results/pose_graph_summary.md``)
+        :func:`endpoint_cross_covariance`). Better on pose graphs, with ``inflation=1.002``
+        in 3-D (``experiments/results/pose_graph_summary.md``); the default stays the
+        estimator measured on point landmarks
     threads : threads for the joint update's passes over the edges (default
         :func:`default_threads`). Not part of :meth:`options` or the state: every thread
         count gives bit-identical results.
