@@ -16,7 +16,8 @@ Usage::
 
     .venv/bin/python experiments/pose_graph_curves.py --scenario 2d --seed 8
     .venv/bin/python experiments/pose_graph_curves.py --scenario 2d --seed 8 --map-seeds 100 101
-    .venv/bin/python experiments/pose_graph_curves.py --scenario 3d --gain endpoints --inflation 1.002
+    .venv/bin/python experiments/pose_graph_curves.py --scenario 3d --gain endpoints \
+        --inflation 1.002
 """
 
 from __future__ import annotations
