@@ -28,6 +28,7 @@ import msgpack
 import numpy as np
 import numpy.typing as npt
 
+from mcsm.core.names import FRAME_RULE, is_frame_name
 from mcsm.errors import (
     BadMessage,
     InvalidSamples,
@@ -58,10 +59,8 @@ QUAT_NORM_TOL = 1e-6
 """Tolerance on ``| |q|^2 - 1 |`` for every sample's quaternion."""
 
 F8 = np.dtype("<f8")
-_FRAME_RE = re.compile(r"[A-Za-z0-9_.:+-]{1,128}")
 _MAP_RE = re.compile(r"[A-Za-z0-9_.+-]{1,64}")
 _PREFIX_RE = re.compile(r"[A-Za-z0-9_.+-]{1,64}(/[A-Za-z0-9_.+-]{1,64}){0,7}")
-FRAME_RULE = "a frame name of 1-128 characters from [A-Za-z0-9_.:+-]"
 
 QueryWant = Literal["samples", "marginal"]
 
@@ -377,7 +376,7 @@ def _int(obj: Mapping[str, Any], key: str, *, lo: int = 0) -> int:
 
 def check_frame(name: Any, fieldname: str = "frame") -> str:
     """Return ``name`` if it is a valid frame name, else raise :class:`BadMessage`."""
-    if not isinstance(name, str) or not _FRAME_RE.fullmatch(name):
+    if not is_frame_name(name):
         raise BadMessage(fieldname, FRAME_RULE, _short(name))
     return name
 

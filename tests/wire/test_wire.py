@@ -207,7 +207,8 @@ def test_schemas_reject_what_the_codec_rejects() -> None:
     good = _jsonable(msgpack.unpackb(wire.encode_update("i", "w", "r", good_samples(3))))
     assert v.is_valid(good)
     assert not v.is_valid({**good, "v": 2})
-    assert not v.is_valid({**good, "b": "a/b"})
+    assert not v.is_valid({**good, "b": "a//b"})
+    assert v.is_valid({**good, "b": "robot1/base_link"})
     assert not v.is_valid({**good, "extra": 1})
     assert not v.is_valid({**good, "samples": {**good["samples"], "shape": [3, 6]}})
 

@@ -3,5 +3,10 @@
 from mcsm.core.at import compound, identity, invert, mean_and_cov, merge, merge_correlated
 from mcsm.core.smap import RemoveResult, StochasticMap, Submap, UpdateResult
 
-__all__ = ["StochasticMap", "UpdateResult", "RemoveResult", "Submap", "compound", "invert",
-           "identity", "merge", "merge_correlated", "mean_and_cov"]
+#: Version of the core's arithmetic: every state-changing computation of one version gives the
+#: same bits on every CPU. Recordings carry it; a recording made by another version cannot be
+#: verified bit for bit (1: the numpy/BLAS core before the compiled kernel, machine-bound).
+ARITHMETIC_VERSION = 2
+
+__all__ = ["ARITHMETIC_VERSION", "StochasticMap", "UpdateResult", "RemoveResult", "Submap",
+           "compound", "invert", "identity", "merge", "merge_correlated", "mean_and_cov"]

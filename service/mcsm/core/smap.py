@@ -32,7 +32,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import re
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -60,6 +59,7 @@ from mcsm.core.at import (
     scaled_eigh,
     to_space,
 )
+from mcsm.core.names import FRAME_RULE, is_frame_name
 from mcsm.core.quat import _L_INDEX, _L_SIGN, qconj, qrot
 from mcsm.errors import (
     FrameExists,
@@ -74,7 +74,6 @@ from mcsm.errors import (
 Array = npt.NDArray[np.float64]
 Method = Literal["joint", "paper"]
 
-FRAME_NAME_RE = re.compile(r"^[A-Za-z0-9_.:+\-]{1,128}$")
 METHODS = ("joint", "paper")
 # adaptive inflation (issue 8): running-average rate, strength, largest factor
 ADAPT_RATE, ADAPT_STRENGTH, ADAPT_MAX = 0.05, 0.008, 1.01
@@ -115,10 +114,10 @@ def default_threads() -> int:
 
 
 def check_frame_name(name: object) -> str:
-    """Return ``name`` if it is a valid frame name (1-128 chars of ``[A-Za-z0-9_.:+-]``)."""
-    if not isinstance(name, str) or not FRAME_NAME_RE.match(name):
-        raise InvalidOperation(
-            f"invalid frame name {name!r}: 1 to 128 characters from [A-Za-z0-9_.:+-]")
+    """Return ``name`` if it is a valid frame name (:data:`mcsm.core.names.FRAME_RULE`)."""
+    if not is_frame_name(name):
+        raise InvalidOperation(f"invalid frame name {name!r}: {FRAME_RULE}")
+    assert isinstance(name, str)
     return name
 
 
