@@ -1,12 +1,15 @@
 """Builds mcsm's compiled kernel (``mcsm.core._kernel``), a plain C shared library loaded with
 ctypes by ``mcsm.core.kernel``; everything else is declared in pyproject.toml.
 
-The flags fix the arithmetic: no fast-math, no fused multiply-add (``-ffp-contract=off``), no
-``-march``: the library gives the same bits on every x86-64 CPU (README, "Portable arithmetic").
-A missing compiler or a failed build stops the install with one line saying so: there is no
-fallback to another implementation.
+The flags fix the arithmetic: no fast-math, no fused multiply-add (``-ffp-contract=off``): the
+library gives the same bits on every CPU (README, "Portable arithmetic"). On x86-64 the same
+source is built twice, for baseline x86-64 (``_kernel``) and with AVX2 (``_kernel_avx2``,
+loaded when the CPU has it: same bits, its four lanes fit one register). A missing compiler or
+a failed build stops the install with one line saying so: there is no fallback to another
+implementation.
 """
 
+import platform
 import sys
 
 from setuptools import Extension, setup
@@ -29,8 +32,10 @@ class BuildKernel(build_ext):
             raise
 
 
-setup(
-    ext_modules=[Extension("mcsm.core._kernel", ["service/mcsm/core/_kernel.c"],
-                           extra_compile_args=KERNEL_FLAGS)],
-    cmdclass={"build_ext": BuildKernel},
-)
+SOURCE = ["service/mcsm/core/_kernel.c"]
+KERNELS = [Extension("mcsm.core._kernel", SOURCE, extra_compile_args=KERNEL_FLAGS)]
+if platform.machine().lower() in ("x86_64", "amd64"):
+    KERNELS.append(Extension("mcsm.core._kernel_avx2", SOURCE,
+                             extra_compile_args=[*KERNEL_FLAGS, "-mavx2"]))
+
+setup(ext_modules=KERNELS, cmdclass={"build_ext": BuildKernel})

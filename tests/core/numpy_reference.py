@@ -1,4 +1,10 @@
-"""The Monte Carlo stochastic map: a forest of star graphs of ATs (PAPER §3).
+"""The numpy reference of the core: the map as it was before the compiled kernel (commit
+16091e8), kept as a test oracle (``tests/core/test_kernel_reference.py``: the kernel agrees
+with it to 1e-9 of every update's move) and as the "old" column of
+``benchmarks/bench_core.py``. Never used by the product: its bits depend on the CPU and the
+BLAS build (einsum, BLAS products, LAPACK ``eigh``).
+
+The Monte Carlo stochastic map: a forest of star graphs of ATs (PAPER §3).
 
 Each component has a root frame and one edge root→frame for every frame, the root's own edge
 being the exact identity at index 0. A component's edges live in one contiguous ``(M, N, 7)``
@@ -715,7 +721,10 @@ class StochasticMap:
             c_xy_t[..., 3:] -= radial[..., None] * q_bar[:, None, :]
         if sq is not None:
             assert self.shrink is not None
-            var_x = np.clip(sq / n - mean**2, 0.0, None) * (n / (n - 1))
+            # as an oracle: variances about the mean (no Σx²/N − x̄² cancellation)
+            dev = edges - mean[:, None, :]
+            var_x = np.einsum("mnk,mnk->mk", dev, dev) / (n - 1)
+            del sq
             c_xy_t = an.shrink_correlations(c_xy_t, var_x, yc, self.shrink)
         return c_xy_t, mean
 
@@ -754,8 +763,12 @@ class StochasticMap:
         q_bar = mean[:, 3:] / np.linalg.norm(mean[:, 3:], axis=1, keepdims=True)
         basis = (q_bar[:, _L_INDEX] * _L_SIGN)[:, :, 1:]  # (M, 4, 3)
         scale = n / (n - 1)
-        var_t = np.clip(sq_t / n - mean[:, :3] ** 2, 0.0, None) * scale
-        cov_q = (sq_q / n - mean[:, 3:, None] * mean[:, None, 3:]) * scale
+        # (as an oracle: second moments about the mean, not Σx²/N − x̄², whose cancellation
+        # costs digits the kernel's shifted sums keep)
+        dev = edges - mean[:, None, :]
+        var_t = np.einsum("mnk,mnk->mk", dev[..., :3], dev[..., :3]) / (n - 1)
+        cov_q = np.matmul(np.swapaxes(dev[..., 3:], 1, 2), dev[..., 3:]) / (n - 1)
+        del sq_t, sq_q, scale
         var_d = 4.0 * np.einsum("mki,mkl,mli->mi", basis, cov_q, basis)
         var_x = np.concatenate((var_t, np.clip(var_d, 0.0, None)), axis=1)
         c_xp = moments[:, :-1, :]

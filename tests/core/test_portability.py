@@ -12,6 +12,7 @@ every option set of the joint update, and replays the shipped recordings.
 from __future__ import annotations
 
 import ast
+import importlib.util
 import json
 import os
 import platform
@@ -96,6 +97,14 @@ def test_same_digests_with_the_kernel_built_for_other_cpus(
     got = _run({"MCSM_KERNEL_LIBRARY": str(kernel_builds[build]),
                 "OPENBLAS_CORETYPE": "Sandybridge"}, 2)
     assert got == reference
+
+
+def test_same_digests_with_the_installed_baseline_build(reference: dict[str, object]) -> None:
+    """pip installs a baseline and an AVX2 build; the reference ran on the one this CPU
+    picks (the AVX2 one on x86-64 with AVX2): the other must agree."""
+    spec = importlib.util.find_spec("mcsm.core._kernel")
+    assert spec is not None and spec.origin is not None
+    assert _run({"MCSM_KERNEL_LIBRARY": spec.origin}, 1) == reference
 
 
 def test_every_option_set_changes_the_digest(reference: dict[str, object]) -> None:

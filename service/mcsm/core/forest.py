@@ -163,7 +163,7 @@ class Forest:
             return c.edge(ib)
         if ib == 0:
             return from_rows(kernel.invert(c.edge_rows(ia)))
-        return from_rows(kernel.relative(c.edge_rows(ia), c.edge_rows(ib)))
+        return kernel.relative_nm7(c.edge_rows(ia), c.edge_rows(ib))
 
     def marginal(self, a: str, b: str) -> tuple[Array, Array]:
         """Mean 7-vector and 6×6 tangent covariance of a→b (see :func:`mean_and_cov`)."""

@@ -37,8 +37,9 @@ RULE_CODES = {"ensrf": 0, "denkf": 1, "enkf": 2}
 SPACE_CODES = {"tangent": 0, "quaternion": 1}
 # adaptive inflation (issue 8): running-average rate, strength, largest factor
 ADAPT_RATE, ADAPT_STRENGTH, ADAPT_MAX = 0.05, 0.008, 1.01
-# frames per task: enough work per call to hide the thread hand-off
-_MIN_FRAMES_PER_TASK = 8
+# frames per task (about 20 us each at N = 1000): enough work per call to hide the thread
+# hand-off
+_MIN_FRAMES_PER_TASK = 32
 _POOLS: dict[int, ThreadPoolExecutor] = {}
 
 

@@ -31,21 +31,12 @@ class KernelMissing(ImportError):
     """The compiled kernel could not be loaded."""
 
 
-def _library_path() -> str:
-    override = os.environ.get("MCSM_KERNEL_LIBRARY")
-    if override:
-        return override
-    spec = importlib.util.find_spec("mcsm.core._kernel")
-    if spec is None or spec.origin is None:
-        here = Path(__file__).parent
-        raise KernelMissing(
-            f"mcsm's compiled kernel (mcsm.core._kernel) is not built in {here}: "
-            "reinstall with a C compiler present (`pip install -e .` or `make test`)")
-    return spec.origin
+def _built(module: str) -> str | None:
+    spec = importlib.util.find_spec(module)
+    return None if spec is None or spec.origin is None else spec.origin
 
 
-def _load() -> ctypes.CDLL:
-    path = _library_path()
+def _open(path: str) -> ctypes.CDLL:
     try:
         lib = ctypes.CDLL(path)
     except OSError as exc:
@@ -57,7 +48,26 @@ def _load() -> ctypes.CDLL:
     return lib
 
 
-_lib = _load()
+def _load() -> tuple[ctypes.CDLL, str]:
+    """The kernel library: ``MCSM_KERNEL_LIBRARY`` if set, else the AVX2 build where the CPU
+    has AVX2, else the baseline build (all three give the same bits)."""
+    override = os.environ.get("MCSM_KERNEL_LIBRARY")
+    if override:
+        return _open(override), override
+    base = _built("mcsm.core._kernel")
+    if base is None:
+        raise KernelMissing(
+            f"mcsm's compiled kernel (mcsm.core._kernel) is not built in "
+            f"{Path(__file__).parent}: reinstall with a C compiler present "
+            "(`pip install -e .` or `make test`)")
+    lib = _open(base)
+    fast = _built("mcsm.core._kernel_avx2")
+    if fast is not None and lib.mk_cpu_has_avx2():
+        return _open(fast), fast
+    return lib, base
+
+
+_lib, LIBRARY = _load()
 _P = ctypes.c_void_p
 _L = ctypes.c_long
 _I = ctypes.c_int
@@ -66,6 +76,7 @@ for _name, _args, _res in (
         ("mk_compound", (_P, _P, _P, _L), None),
         ("mk_invert", (_P, _P, _L), None),
         ("mk_relative", (_P, _P, _P, _L), None),
+        ("mk_relative_nm7", (_P, _P, _P, _L), None),
         ("mk_point_edge", (_P, _P, _P, _L), None),
         ("mk_canonicalize", (_P, _L, _I), None),
         ("mk_transform_frames", (_P, _P, _P, _P, _L, _L, _L), _I),
@@ -96,7 +107,7 @@ def ptr(a: npt.NDArray[np.generic]) -> int:
     """The data pointer of a C-contiguous array (checked)."""
     if not a.flags.c_contiguous:
         raise ValueError("kernel arrays must be C-contiguous")
-    return int(a.ctypes.data)
+    return int(a.__array_interface__["data"][0])
 
 
 def compound(a: Array, b: Array, out: Array | None = None) -> Array:
@@ -117,6 +128,14 @@ def relative(a: Array, b: Array) -> Array:
     """``a^R ⊕ b`` on rows ``(7, N)`` (the query)."""
     o = np.empty_like(a)
     _lib.mk_relative(ptr(a), ptr(b), ptr(o), a.shape[-1])
+    return o
+
+
+def relative_nm7(a: Array, b: Array) -> Array:
+    """``a^R ⊕ b`` from rows ``(7, N)`` into a new ``(N, 7)`` array (a query's answer)."""
+    n = a.shape[-1]
+    o = np.empty((n, 7))
+    _lib.mk_relative_nm7(ptr(a), ptr(b), ptr(o), n)
     return o
 
 
