@@ -724,7 +724,6 @@ class StochasticMap:
             # as an oracle: variances about the mean (no Σx²/N − x̄² cancellation)
             dev = edges - mean[:, None, :]
             var_x = np.einsum("mnk,mnk->mk", dev, dev) / (n - 1)
-            del sq
             c_xy_t = an.shrink_correlations(c_xy_t, var_x, yc, self.shrink)
         return c_xy_t, mean
 
@@ -768,7 +767,6 @@ class StochasticMap:
         dev = edges - mean[:, None, :]
         var_t = np.einsum("mnk,mnk->mk", dev[..., :3], dev[..., :3]) / (n - 1)
         cov_q = np.matmul(np.swapaxes(dev[..., 3:], 1, 2), dev[..., 3:]) / (n - 1)
-        del sq_t, sq_q, scale
         var_d = 4.0 * np.einsum("mki,mkl,mli->mi", basis, cov_q, basis)
         var_x = np.concatenate((var_t, np.clip(var_d, 0.0, None)), axis=1)
         c_xp = moments[:, :-1, :]
