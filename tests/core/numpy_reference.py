@@ -761,7 +761,6 @@ class StochasticMap:
         mean = moments[:, -1, :]
         q_bar = mean[:, 3:] / np.linalg.norm(mean[:, 3:], axis=1, keepdims=True)
         basis = (q_bar[:, _L_INDEX] * _L_SIGN)[:, :, 1:]  # (M, 4, 3)
-        scale = n / (n - 1)
         # (as an oracle: second moments about the mean, not Σx²/N − x̄², whose cancellation
         # costs digits the kernel's shifted sums keep)
         dev = edges - mean[:, None, :]
