@@ -11,8 +11,8 @@ chain of ``Pose2`` odometry ``BetweenFactor`` s plus **Cartesian** point sightin
 ``z = R(θ_i)ᵀ (l - p_i)`` with a 2x2 covariance. GTSAM's Python wrapper has no pose-to-point
 factor, so the sighting is a small :class:`gtsam.CustomFactor` with analytic Jacobians
 (``point_factor_2d``). We deliberately do not use ``gtsam.load2D``: it turns Cartesian sightings
-into bearing/range factors with invented sigmas (``shared/notes/datasets.md``), which is not the
-model our map is given.
+into bearing/range factors with invented sigmas (bearing sqrt(c11/10) rad, range sqrt(c11) m, as
+if the x-y covariance held at 10 m), which is not the model our map is given.
 
 Pose graphs (2D and 3D) use ``BetweenFactorPose2`` / ``BetweenFactorPose3`` directly.
 
