@@ -47,6 +47,24 @@ Usage::
     .venv/bin/python experiments/pose_graph.py --methods joint --spaces tangent   # the fast part
     .venv/bin/python experiments/pose_graph.py --poses 300 --no-timing            # a short run
     .venv/bin/python experiments/pose_graph.py --scenarios --timing-methods joint  # timing only
+
+The committed results (``experiments/results/pose_graph_summary.md``; ``--tag T`` writes
+``pose_graph_runs_T.csv``)::
+
+    .venv/bin/python experiments/pose_graph.py --spaces tangent \
+        --ekf exact shrink shrink-endpoints --no-timing --tag accept_seed8
+    .venv/bin/python experiments/pose_graph.py --seed S --methods joint --spaces tangent \
+        --ekf --no-timing --tag accept_seedS                           # S = 9 ... 21
+    .venv/bin/python experiments/pose_graph.py --seed S --methods joint --spaces tangent \
+        --gains direct endpoints --inflation adaptive --ekf --no-timing \
+        --tag gains_seedS                                              # S = 8 ... 14
+    .venv/bin/python experiments/pose_graph.py --scenarios --timing-methods joint \
+        --tag timing_gains
+
+The N = 1000 runs (``n1000_2d_adaptive``, ``n1000_3d_adaptive``, ``sphere2500_n1000``) were made
+at core b006e7c, before ``--gains`` existed; today's equivalent is ``--scenarios 3d`` (or ``2d``,
+``sphere2500``) ``--methods joint --spaces tangent --n-samples 1000 --gains direct
+--inflation 1.0 --loop-updates adaptive --ekf --no-timing --tag n1000_3d_adaptive``.
 """
 
 from __future__ import annotations

@@ -36,6 +36,12 @@ constraint list (``Constraint(i, j, z, cov, kind)``, in the order a robot would 
 and :func:`write_g2o` for ``EDGE_SE3:QUAT`` / ``EDGE_SE2`` files (g2o information matrices), with
 the ground truth in a second file, so the same runs can be repeated by the g2o readers.
 
+It reproduces no figure by itself: :mod:`experiments.pose_graph`, :mod:`experiments.eval3d` and
+the tests draw their graphs from it. On its own it prints one graph's summary and can write it::
+
+    .venv/bin/python -m experiments.posegraph_sim --seed 8 --poses 1000 --g2o /tmp/helix.g2o
+    .venv/bin/python -m experiments.posegraph_sim --planar --seed 8 --poses 1000
+
 Example
 -------
 >>> import numpy as np
