@@ -593,8 +593,10 @@ class PoseEdge3D:
 
 
 def pose3_from_row(row: Array) -> gtsam.Pose3:
-    """A ``gtsam.Pose3`` from one ``x y z qw qx qy qz`` row."""
-    rot = gtsam.Rot3.Quaternion(float(row[3]), float(row[4]), float(row[5]), float(row[6]))
+    """A ``gtsam.Pose3`` from one ``x y z qw qx qy qz`` row (the quaternion normalised here)."""
+    q = np.asarray(row[3:7], dtype=np.float64)
+    q = q / np.linalg.norm(q)
+    rot = gtsam.Rot3.Quaternion(float(q[0]), float(q[1]), float(q[2]), float(q[3]))
     return gtsam.Pose3(rot, gtsam.Point3(float(row[0]), float(row[1]), float(row[2])))
 
 
