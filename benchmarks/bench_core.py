@@ -23,17 +23,19 @@ import tracemalloc
 
 import numpy as np
 from mcsm import StochasticMap
-from mcsm.core.quat import qexp
+from mcsm_client.sampling import pose_from_planar, sample_pose
 
 CHECKPOINTS = (25, 50, 100, 200, 400)
 
 
+NOISE_COV = np.diag([0.02**2] * 3 + [0.01**2] * 3)  # 2 cm, 0.6 deg per axis
+
+
 def random_at(rng: np.random.Generator, n: int) -> np.ndarray:
-    """A 3-D AT: 1 m forward-ish step, a few degrees of turn, cm/deg noise."""
-    x = np.empty((n, 7))
-    x[:, :3] = rng.normal([1.0, 0.2, 0.05], 0.05, 3) + 0.02 * rng.standard_normal((n, 3))
-    x[:, 3:] = qexp(rng.normal([0.01, 0.02, 0.15], 0.01, 3) + 0.01 * rng.standard_normal((n, 3)))
-    return x
+    """A 3-D AT: 1 m forward-ish step, a few degrees of turn, cm/deg noise in all six axes."""
+    mean = pose_from_planar(rng.normal([1.0, 0.2, 0.15], [0.05, 0.05, 0.01]))
+    mean[2] = rng.normal(0.05, 0.05)
+    return sample_pose(mean, NOISE_COV, n_samples=n, rng=rng)
 
 
 def copy_pass_s(edges: np.ndarray, repeats: int = 5) -> float:
