@@ -213,7 +213,7 @@ def main() -> None:
             f"{k} {v:.2f}" for k, v in exps.items() if v is not None), flush=True)
     n_paper = 1000 if 1000 in a.sizes else a.sizes[0]
     ms, passes = paper_at(n_paper, 400, a.updates)
-    print(f"paper method (machine-bound numpy), N = {n_paper}, M = 400: {ms:.1f} ms, "
+    print(f"paper method (tangent chart, kernel), N = {n_paper}, M = 400: {ms:.1f} ms, "
           f"{passes:.1f} passes")
     for method in ("joint", "paper"):
         print(f"tracemalloc peak of one {method} update, N = {n_paper}, M = 400: "

@@ -28,6 +28,7 @@ OPTION_SETS: dict[str, dict[str, object]] = {
     "quaternion+enkf": {"space": "quaternion", "analysis": "enkf", "shrink": None},
     "denkf+1.01": {"analysis": "denkf", "inflation": 1.01},
     "gate": {"gate": 0.99},
+    "paper": {"method": "paper"},
 }
 
 

@@ -85,3 +85,38 @@ def test_kernel_agrees_with_the_numpy_reference(opts: dict[str, object], n_updat
     compared, worst = _run(opts, n_updates, seed=20261123)
     assert compared >= n_updates // 2
     assert worst < tol, f"worst error {worst:.3g} of the update's move"
+
+
+def test_paper_kernel_agrees_with_its_numpy_version() -> None:
+    """method="paper" in the tangent chart: the kernel against mcsm.core.paper.paper_update
+    (numpy), from the same state, pose-pose and point closures, 1e-9 of the move."""
+    from mcsm.core import paper
+
+    rng = np.random.default_rng(20261124)
+    m = StochasticMap(N, method="paper")
+    for k in range(40):
+        m.update(f"p{k}", f"p{k + 1}", random_at(rng, N, kind="cloud", t_sigma=0.2,
+                                                  r_sigma=0.05))
+        if k % 4 == 0:
+            m.update(f"p{k}", f"l{k}", 1.0 + 0.3 * rng.standard_normal((N, 3)))
+    compared, worst = 0, 0.0
+    for step in range(60):
+        a, b = (int(v) for v in rng.choice(40, 2, replace=False))
+        if step % 3 == 0:
+            lm = f"l{4 * (b // 4)}"
+            x = m.query(f"p{a}", lm)[:, :3] + 0.05 * rng.standard_normal((N, 3))
+            af, bf = f"p{a}", lm
+        else:
+            x = m.query(f"p{a}", f"p{b}")[rng.permutation(N)]
+            af, bf = f"p{a}", f"p{b}"
+        comp = m._comps[m._where[af]]
+        want = paper.paper_update(comp, af, bf, x, x.shape[1] == 3, "tangent")
+        before = comp.edges()[[comp.index[f] for f in want.frames]]
+        m.update(af, bf, x)
+        got = m._comps[m._where[af]]
+        assert got.frames == want.frames
+        move = float(np.max(np.abs(want.edges() - before)))
+        worst = max(worst, float(np.max(np.abs(got.edges() - want.edges()))) / move)
+        compared += 1
+    assert compared == 60
+    assert worst < 1e-9, f"worst error {worst:.3g} of the update's move"

@@ -1031,3 +1031,220 @@ int mk_joint_frames(const mk_joint_args *A, const double *edges, double *out,
 }
 
 long mk_joint_args_size(void) { return (long)sizeof(mk_joint_args); }
+
+/* ------------------------------------------------------------------ the paper's update */
+
+/* Scaled, truncated pseudo-inverse of a symmetric PSD m x m matrix (mcsm.core.at.scaled_pinv) */
+static void scaled_pinv(const double *s, int m, double *out) {
+    double dsc[MAXD], lam[MAXD], v[MAXD * MAXD], f[MAXD];
+    scaled_eigh(s, m, dsc, lam, v);
+    for (int k = 0; k < m; k++) f[k] = lam[k] > 0.0 ? 1.0 / lam[k] : 0.0;
+    vfv(v, f, m, out);
+    for (int a = 0; a < m; a++)
+        for (int b = 0; b < m; b++) out[a * m + b] = out[a * m + b] * dsc[a] * dsc[b];
+}
+
+/* Revised merge (PAPER eq. 6) of two correlated estimates given as p rows each (p <= 6):
+ * c, d (p rows of n) -> out = c + K (d - c), K = (cov c - C_X) cov(c - d)^+,
+ * C_X = (cov c + cov d - cov(c - d)) / 2. work: 3 p n doubles. */
+static void merge_vectors_rows(const double *c, const double *d, int p, long n, double *out,
+                               double *work) {
+    double *ac = work, *ad = work + p * n, *adiff = work + 2 * p * n;
+    for (int k = 0; k < p; k++) {
+        double mc = row_sum(c + k * n, n) / (double)n, md = row_sum(d + k * n, n) / (double)n;
+        for (long i = 0; i < n; i++) {
+            ac[k * n + i] = c[k * n + i] - mc;
+            ad[k * n + i] = d[k * n + i] - md;
+            adiff[k * n + i] = ac[k * n + i] - ad[k * n + i];
+        }
+    }
+    double cc[36], cd[36], cdf[36], ca[36], pinv[36], gain[36];
+    for (int a = 0; a < p; a++)
+        for (int b = 0; b < p; b++) {
+            cc[a * p + b] = row_dot(ac + a * n, ac + b * n, n) / (double)(n - 1);
+            cd[a * p + b] = row_dot(ad + a * n, ad + b * n, n) / (double)(n - 1);
+            cdf[a * p + b] = row_dot(adiff + a * n, adiff + b * n, n) / (double)(n - 1);
+        }
+    for (int i = 0; i < p * p; i++) ca[i] = cc[i] - 0.5 * (cc[i] + cd[i] - cdf[i]);
+    scaled_pinv(cdf, p, pinv);
+    matmul(ca, pinv, p, p, p, gain);
+    for (int a = 0; a < p; a++) {
+        double *o = out + a * n;
+        for (long i = 0; i < n; i++) o[i] = c[a * n + i];
+        for (int b = 0; b < p; b++) {
+            double g = gain[a * p + b];
+            for (long i = 0; i < n; i++) o[i] = o[i] + (d[b * n + i] - c[b * n + i]) * g;
+        }
+    }
+}
+
+/* [t, 2 vec(q_ref^-1 q)] rows (6 x n) of an AT in rows x, quaternions on q_ref's side */
+static void tangent_rows(const double *x, const double *m, long n, double *v) {
+    memcpy(v, x, sizeof(double) * 3 * n);
+    for (long i = 0; i < n; i++) {
+        double r[4];
+        qmul1(m[0], -m[1], -m[2], -m[3], x[3 * n + i], x[4 * n + i], x[5 * n + i],
+              x[6 * n + i], r);
+        double sg = r[0] < 0.0 ? -1.0 : 1.0;
+        v[3 * n + i] = 2.0 * (r[1] * sg);
+        v[4 * n + i] = 2.0 * (r[2] * sg);
+        v[5 * n + i] = 2.0 * (r[3] * sg);
+    }
+}
+
+/* The merged main edge G' = G (x) X of PAPER Fig. 3 (tangent chart; or the 3-D points of a
+ * point observation, x then 3 rows), written into out (7 rows). work: 36 n doubles. */
+void mk_paper_main_edge(const double *g, const double *x, long n, int point, double *out,
+                        double *work) {
+    double *pc = work, *pd = work + 6 * n, *res = work + 12 * n, *tmp = work + 18 * n;
+    if (point) {  /* the translation rows only; work[0, 9 n) as scratch */
+        memcpy(out, g, sizeof(double) * 7 * n);
+        merge_vectors_rows(g, x, 3, n, res, pc);
+        memcpy(out, res, sizeof(double) * 3 * n);
+        return;
+    }
+    double m[4];
+    mean_rotation(g + 3 * n, n, m);
+    tangent_rows(g, m, n, pc);
+    tangent_rows(x, m, n, pd);
+    merge_vectors_rows(pc, pd, 6, n, res, tmp);
+    memcpy(out, res, sizeof(double) * 3 * n);
+    for (long i = 0; i < n; i++) {
+        double hx = 0.5 * res[3 * n + i], hy = 0.5 * res[4 * n + i], hz = 0.5 * res[5 * n + i];
+        double w2 = 1.0 - (hx * hx + hy * hy + hz * hz);
+        double w = sqrt(w2 > 0.0 ? w2 : 0.0);
+        double nrm = sqrt(w * w + hx * hx + hy * hy + hz * hz);
+        double q[4];
+        qmul1(m[0], m[1], m[2], m[3], w / nrm, hx / nrm, hy / nrm, hz / nrm, q);
+        out[3 * n + i] = q[0];
+        out[4 * n + i] = q[1];
+        out[5 * n + i] = q[2];
+        out[6 * n + i] = q[3];
+    }
+}
+
+/* merge_correlated(C, shift (+) C) in the tangent chart of C's mean rotation, for frames
+ * lo..hi-1 of `in` (each first re-rooted: C = pre (+) e, points pinned, when pre is given),
+ * written to out[f + dst_offset]. PAPER Fig. 3's E_j' = E_j (x) (G' (+) G^R (+) E_j), with
+ * Delta = p_D - p_C: C_A = -sym(cov(p_C, Delta)), C_A + C_B = cov(Delta) (in delta = 2 v
+ * units), p = p_C + K Delta. work: 17 n doubles. */
+int mk_paper_frames(const double *pre, const double *shift, const double *in, double *out,
+                    const uint8_t *point, long lo, long hi, long dst_offset, long n,
+                    double *work) {
+    double *c = work, *dlt = work + 7 * n, *qd = work + 13 * n;
+    const double s6[6] = {1.0, 1.0, 1.0, 2.0, 2.0, 2.0};
+    for (long f = lo; f < hi; f++) {
+        const double *e = in + f * 7 * n;
+        double *o = out + (f + dst_offset) * 7 * n;
+        if (pre != NULL) {
+            mk_compound(pre, e, c, n);
+            if (point[f]) pin_point(c, n);
+        } else {
+            memcpy(c, e, sizeof(double) * 7 * n);
+        }
+        /* D = shift (+) C: Delta t = t_D - t_C, q_D */
+        for (long i = 0; i < n; i++) {
+            double t[3], q[4];
+            qrot1(shift[3 * n + i], shift[4 * n + i], shift[5 * n + i], shift[6 * n + i], c[i],
+                  c[n + i], c[2 * n + i], t);
+            dlt[i] = (shift[i] + t[0]) - c[i];
+            dlt[n + i] = (shift[n + i] + t[1]) - c[n + i];
+            dlt[2 * n + i] = (shift[2 * n + i] + t[2]) - c[2 * n + i];
+            qmul1(shift[3 * n + i], shift[4 * n + i], shift[5 * n + i], shift[6 * n + i],
+                  c[3 * n + i], c[4 * n + i], c[5 * n + i], c[6 * n + i], q);
+            qd[i] = q[0];
+            qd[n + i] = q[1];
+            qd[2 * n + i] = q[2];
+            qd[3 * n + i] = q[3];
+        }
+        double m[4];
+        mean_rotation(c + 3 * n, n, m);
+        /* v_C into c's rows 3..5 (c's quaternion rows are not needed after this), v_D - v_C
+         * into dlt's rows 3..5 */
+        for (long i = 0; i < n; i++) {
+            double rc[4], rd[4];
+            qmul1(m[0], -m[1], -m[2], -m[3], c[3 * n + i], c[4 * n + i], c[5 * n + i],
+                  c[6 * n + i], rc);
+            qmul1(m[0], -m[1], -m[2], -m[3], qd[i], qd[n + i], qd[2 * n + i], qd[3 * n + i],
+                  rd);
+            double sc = rc[0] < 0.0 ? -1.0 : 1.0, sd = rd[0] < 0.0 ? -1.0 : 1.0;
+            double vc0 = rc[1] * sc, vc1 = rc[2] * sc, vc2 = rc[3] * sc;
+            dlt[3 * n + i] = rd[1] * sd - vc0;
+            dlt[4 * n + i] = rd[2] * sd - vc1;
+            dlt[5 * n + i] = rd[3] * sd - vc2;
+            c[3 * n + i] = vc0;
+            c[4 * n + i] = vc1;
+            c[5 * n + i] = vc2;
+        }
+        /* p_C = c rows 0..5 ([t, v]), Delta = dlt rows 0..5: cross-covariances */
+        double mc[6], md[6];
+        for (int k = 0; k < 6; k++) {
+            mc[k] = row_sum(c + k * n, n) / (double)n;
+            md[k] = row_sum(dlt + k * n, n) / (double)n;
+        }
+        double ccd[36], cdd[36];
+        for (int a = 0; a < 6; a++) {
+            for (int b = 0; b < 6; b++) {
+                const double *xa = c + a * n, *xb = dlt + b * n;
+                double sa = mc[a], sb = md[b];
+                v4 acc = splat(0.0), va = splat(sa), vb = splat(sb);
+                long i = 0;
+                for (; i + 4 <= n; i += 4) acc += (ld4(xa + i) - va) * (ld4(xb + i) - vb);
+                double t = hsum(acc);
+                for (; i < n; i++) t += (xa[i] - sa) * (xb[i] - sb);
+                ccd[a * 6 + b] = t / (double)(n - 1) * s6[a] * s6[b];
+            }
+            for (int b = a; b < 6; b++) {
+                const double *xa = dlt + a * n, *xb = dlt + b * n;
+                double sa = md[a], sb = md[b];
+                v4 acc = splat(0.0), va = splat(sa), vb = splat(sb);
+                long i = 0;
+                for (; i + 4 <= n; i += 4) acc += (ld4(xa + i) - va) * (ld4(xb + i) - vb);
+                double t = hsum(acc);
+                for (; i < n; i++) t += (xa[i] - sa) * (xb[i] - sb);
+                double v = t / (double)(n - 1) * s6[a] * s6[b];
+                cdd[a * 6 + b] = v;
+                cdd[b * 6 + a] = v;
+            }
+        }
+        double ca[36], pinv[36], gain[36];
+        for (int a = 0; a < 6; a++)
+            for (int b = 0; b < 6; b++) ca[a * 6 + b] = -0.5 * (ccd[a * 6 + b] + ccd[b * 6 + a]);
+        scaled_pinv(cdd, 6, pinv);
+        matmul(ca, pinv, 6, 6, 6, gain);
+        for (int a = 0; a < 6; a++)
+            for (int b = 0; b < 6; b++) gain[a * 6 + b] = gain[a * 6 + b] * (s6[b] / s6[a]);
+        /* [t, v] = p_C + K Delta */
+        for (int a = 0; a < 6; a++) {
+            double *r = (a < 3) ? o + a * n : qd + (a - 3) * n;  /* v into qd rows 0..2 */
+            const double *pa = c + a * n;
+            for (long i = 0; i < n; i++) r[i] = pa[i];
+            for (int b = 0; b < 6; b++) {
+                double g = gain[a * 6 + b];
+                const double *db = dlt + b * n;
+                for (long i = 0; i < n; i++) r[i] = r[i] + db[i] * g;
+            }
+        }
+        /* back from the chart: w = sqrt(1 - |v|^2) (v scaled to unit if |v| > 1), q_ref (w, v) */
+        for (long i = 0; i < n; i++) {
+            double vx = qd[i], vy = qd[n + i], vz = qd[2 * n + i];
+            double s2 = vx * vx + vy * vy + vz * vz;
+            double w2 = 1.0 - s2;
+            double w = sqrt(w2 > 0.0 ? w2 : 0.0);
+            if (s2 > 1.0) {
+                double sn = sqrt(s2);
+                vx = vx / sn;
+                vy = vy / sn;
+                vz = vz / sn;
+            }
+            double q[4];
+            qmul1(m[0], m[1], m[2], m[3], w, vx, vy, vz, q);
+            o[3 * n + i] = q[0];
+            o[4 * n + i] = q[1];
+            o[5 * n + i] = q[2];
+            o[6 * n + i] = q[3];
+        }
+        if (!all_finite(o, 7 * n)) return MK_NONFINITE;
+    }
+    return MK_OK;
+}

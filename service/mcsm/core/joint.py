@@ -21,6 +21,7 @@ never depends on the split, so digests do not depend on the thread count.
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -50,6 +51,16 @@ def default_threads() -> int:
     except AttributeError:  # not on Linux
         cores = os.cpu_count() or 1
     return max(1, min(4, cores))
+
+
+def run_ranges(fn: Callable[[int, int], int], m: int, threads: int) -> list[int]:
+    """``fn(lo, hi)`` over contiguous frame ranges covering [0, m), on up to ``threads``
+    threads (the kernel releases the GIL); the codes, in range order."""
+    tasks = min(threads, max(1, m // _MIN_FRAMES_PER_TASK))
+    if tasks <= 1:
+        return [fn(0, m)]
+    bounds = [m * t // tasks for t in range(tasks + 1)]
+    return list(_pool(tasks).map(lambda t: fn(bounds[t], bounds[t + 1]), range(tasks)))
 
 
 def _pool(threads: int) -> ThreadPoolExecutor:
@@ -137,16 +148,9 @@ def apply(comp: Component, ia: int, ib: int, prep: Prepared, *, space: str, gain
         args.sum_pc = kernel.ptr(sum_pc)
     buf = comp.buffer
     out = spare if spare is not None and spare.shape == buf.shape else np.empty_like(buf)
-    m = len(comp)
     flags = comp.point_flags
-    tasks = min(threads, max(1, m // _MIN_FRAMES_PER_TASK))
-    if tasks <= 1:
-        codes = [kernel.joint_frames(args, buf, out, flags, 0, m)]
-    else:
-        bounds = [m * t // tasks for t in range(tasks + 1)]
-        codes = list(_pool(tasks).map(
-            lambda t: kernel.joint_frames(args, buf, out, flags, bounds[t], bounds[t + 1]),
-            range(tasks)))
+    codes = run_ranges(lambda lo, hi: kernel.joint_frames(args, buf, out, flags, lo, hi),
+                       len(comp), threads)
     del keep
     for rc in codes:
         if rc == kernel.NONFINITE_GAIN:

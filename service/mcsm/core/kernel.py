@@ -84,7 +84,9 @@ for _name, _args, _res in (
         ("mk_analysis", (_P, _P, _P, _L, _I, _I, _I, _P, _P, _P, _P), _I),
         ("mk_endpoint_prep", (_P, _P, _L, _I, _P, _I, _P, _D, _P, _P, _P, _P, _P), _I),
         ("mk_joint_frames", (_P, _P, _P, _P, _L, _L), _I),
-        ("mk_joint_args_size", (), _L)):
+        ("mk_joint_args_size", (), _L),
+        ("mk_paper_main_edge", (_P, _P, _L, _I, _P, _P), None),
+        ("mk_paper_frames", (_P, _P, _P, _P, _P, _L, _L, _L, _L, _P), _I)):
     _fn = getattr(_lib, _name)
     _fn.argtypes = list(_args)
     _fn.restype = _res
@@ -206,6 +208,25 @@ def joint_frames(args: JointArgs, edges: Array, out: Array, point: npt.NDArray[n
                                     hi))
 
 
+def paper_main_edge(g: Array, x: Array, point: bool) -> Array:
+    """The merged main edge ``G ⊗ X`` (PAPER Fig. 3, tangent chart; points: translations)."""
+    n = g.shape[-1]
+    out = np.empty((7, n))
+    work = np.empty(36 * n)
+    _lib.mk_paper_main_edge(ptr(g), ptr(x), n, int(point), ptr(out), ptr(work))
+    return out
+
+
+def paper_frames(pre: Array | None, shift: Array, frames: Array, out: Array,
+                 point: npt.NDArray[np.uint8], lo: int, hi: int, dst_offset: int) -> int:
+    """``out[f + dst_offset] = merge(C, shift ⊕ C)`` with ``C = pre ⊕ frames[f]`` (or
+    ``frames[f]``) for f in [lo, hi); releases the GIL."""
+    n = frames.shape[-1]
+    work = np.empty(17 * n)
+    return int(_lib.mk_paper_frames(None if pre is None else ptr(pre), ptr(shift), ptr(frames),
+                                    ptr(out), ptr(point), lo, hi, dst_offset, n, ptr(work)))
+
+
 __all__ = ["KernelMissing", "JointArgs", "compound", "invert", "relative", "point_edge",
            "canonicalize", "canonicalize_frames", "transform_frames", "analysis",
-           "endpoint_prep", "joint_frames"]
+           "endpoint_prep", "joint_frames", "paper_main_edge", "paper_frames"]

@@ -1,19 +1,24 @@
 """The paper's own loop-closure update (``method="paper"``, PAPER §3 Fig. 3), kept to
 reproduce the paper: re-root at ``a``, merge the main edge with the revised merge, propagate to
-every leaf with ``E_j ⊗ (G' ⊕ G^R ⊕ E_j)``.
+every leaf with ``E_j ⊗ (G' ⊕ G^R ⊕ E_j)``. It diverges on the paper's own scenario at N = 200
+and on pose graphs (README, limitations).
 
-**Machine-bound**: unlike everything else in the core this path runs on numpy (einsum, BLAS
-products, LAPACK ``eigh``), whose last bits depend on the CPU and the BLAS build, so a
-recording of a ``method="paper"`` map replays bit-identically only on the machine family that
-made it (``StochasticMap.portable`` is False; ``mcsm inspect`` and ``mcsm replay`` say so). It
-diverges on the paper's own scenario at N = 200 and on pose graphs (README, limitations).
+In the tangent chart (the default space) it runs in the compiled kernel, fused per frame
+(re-rooting, shift and revised merge of each edge while it sits in cache) and portable like
+the joint update. In the quaternion space (the paper's 7-D Euclidean treatment) it runs on
+numpy (einsum, BLAS products, LAPACK ``eigh``) and is **machine-bound**: a recording of such a
+map replays bit-identically only on the machine family that made it
+(``StochasticMap.portable`` is False).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import numpy.typing as npt
 
+from mcsm.core import kernel
 from mcsm.core.at import (
     compound,
     identity,
@@ -21,16 +26,63 @@ from mcsm.core.at import (
     merge_correlated,
     merge_correlated_shifted,
 )
-from mcsm.core.storage import Component, to_rows
+from mcsm.core.storage import Component, identity_rows, to_rows
 from mcsm.errors import NumericalError
 
 Array = npt.NDArray[np.float64]
 
 
+def paper_update_tangent(comp: Component, a: str, b: str, x_rows: Array, point: bool,
+                         run: Callable[[Callable[[int, int], int], int], list[int]]
+                         ) -> Component:
+    """The component after the loop closure ``x_rows`` (``(7, N)`` or ``(3, N)``) from a to b,
+    re-rooted at a, computed by the kernel; ``run(fn, m)`` calls ``fn(lo, hi)`` over frame
+    ranges covering [0, m) (on threads) and returns the codes."""
+    n = comp.n_samples
+    m = len(comp)
+    k, ib_old = comp.index[a], comp.index[b]
+    pre = kernel.invert(comp.edge_rows(k)) if k != 0 else None
+    if pre is None:
+        g = comp.edge_rows(ib_old).copy()
+    else:
+        g = kernel.compound(pre, comp.edge_rows(ib_old))
+        if comp.is_point(ib_old):
+            g[3], g[4:] = 1.0, 0.0
+    if not np.isfinite(g).all():
+        raise NumericalError("re-rooting produced non-finite samples")
+    g_new = kernel.paper_main_edge(g, x_rows, point)
+    shift = kernel.compound(g_new, kernel.invert(g))
+    rows, flags = comp.rows, comp.point_flags
+    out = np.empty((m, 7, n))
+
+    def frames(lo: int, hi: int) -> int:
+        # old frames 0..k-1 become 1..k, old k+1.. keep their index; old k becomes the root
+        codes = [kernel.paper_frames(pre, shift, rows, out, flags, lo, min(hi, k), 1)
+                 if lo < k else kernel.OK,
+                 kernel.paper_frames(pre, shift, rows, out, flags, max(lo, k + 1), hi, 0)
+                 if hi > k + 1 else kernel.OK]
+        return max(codes)
+
+    if any(rc != kernel.OK for rc in run(frames, m)):
+        raise NumericalError("the loop closure produced non-finite samples")
+    order = [k] + [i for i in range(m) if i != k]
+    is_point = [bool(flags[i]) for i in order]
+    out[order.index(ib_old)] = g_new
+    for i, p in enumerate(is_point):
+        if p:
+            out[i, 3], out[i, 4:] = 1.0, 0.0
+    out[0] = identity_rows(n)
+    if not np.isfinite(out).all():
+        raise NumericalError("the loop closure produced non-finite samples")
+    return Component([comp.frames[i] for i in order], is_point, out)
+
+
 def paper_update(comp: Component, a: str, b: str, x: Array, point: bool, space: str
                  ) -> Component:
     """The component after the loop closure ``x`` (``(N, 7)`` or ``(N, 3)``) from a to b,
-    re-rooted at a. Raises NumericalError (component unchanged) on non-finite results."""
+    re-rooted at a, on numpy (machine-bound; the reference of :func:`paper_update_tangent`
+    in the tangent chart). Raises NumericalError (component unchanged) on non-finite
+    results."""
     edges = comp.edges()
     is_point = np.array(comp.point_list(), dtype=bool)
     frames = list(comp.frames)
@@ -110,4 +162,4 @@ def _check_finite(edges: Array, what: str) -> None:
         raise NumericalError(f"{what} produced non-finite samples")
 
 
-__all__ = ["paper_update"]
+__all__ = ["paper_update", "paper_update_tangent"]

@@ -30,7 +30,7 @@ from mcsm.core.forest import (
     check_frame_name,
 )
 from mcsm.core.gate import chi2_quantile
-from mcsm.core.paper import paper_update
+from mcsm.core.paper import paper_update, paper_update_tangent
 from mcsm.core.storage import to_rows
 from mcsm.errors import InvalidOperation, InvalidSamples
 
@@ -50,8 +50,8 @@ class StochasticMap(Forest):
     Parameters
     ----------
     n_samples : N, constant for the whole map
-    method : ``"joint"`` (default; compiled, portable) or ``"paper"`` (PAPER Fig. 3,
-        machine-bound numpy, kept for reproduction)
+    method : ``"joint"`` (default) or ``"paper"`` (PAPER Fig. 3, kept for reproduction;
+        machine-bound numpy in the quaternion space)
     space : ``"tangent"`` (default, the ⊞ chart of PAPER §5) or ``"quaternion"`` (the paper's
         7-D Euclidean treatment), the vector space of every linear step
     analysis : rule of the joint update: ``"ensrf"`` (default; deterministic square root),
@@ -124,8 +124,8 @@ class StochasticMap(Forest):
     @property
     def portable(self) -> bool:
         """True when every update of this map gives the same bits on every CPU (all but
-        ``method="paper"``, whose loop closure runs on numpy/BLAS)."""
-        return self.method != "paper"
+        ``method="paper"`` in the quaternion space, whose loop closure runs on numpy/BLAS)."""
+        return not (self.method == "paper" and self.space == "quaternion")
 
     def options(self) -> dict[str, Any]:
         """The constructor arguments, as a plain dict (round-trips through from_options)."""
@@ -214,7 +214,12 @@ class StochasticMap(Forest):
         if verdict.status == "rejected":
             return UpdateResult("rejected", c.root, (), verdict)
         if self.method == "paper":
-            self._comps[cid] = paper_update(c, a, b, x, point, self.space)
+            if self.space == "tangent":
+                self._comps[cid] = paper_update_tangent(
+                    c, a, b, x_rows, point,
+                    lambda fn, m: joint.run_ranges(fn, m, self.threads))
+            else:
+                self._comps[cid] = paper_update(c, a, b, x, point, self.space)
             return UpdateResult("loop_closure", a, (), verdict)
         inflation, nis_avg = joint.inflation_factor(prep, self.inflation, self._nis_avg)
         self._spare = joint.apply(c, ia, ib, prep, space=self.space, gain=self.gain,
