@@ -452,6 +452,21 @@ static int predict(const double *e_a, const double *e_b, const double *x, long n
     mk_relative(e_a, e_b, h, n);
     double m[4];
     mean_rotation(h + 3 * n, n, m);
+    /* The prediction's samples go on the hemisphere of its own mean m (each sample's sign by
+     * its own relative rotation). The observation's samples are first put on the hemisphere
+     * of the observation's own mean rotation mx, then all on the side where mx is closest to
+     * m: an observation half a turn from the prediction keeps its samples together (its mean
+     * stays half a turn away) instead of splitting into two opposite halves. */
+    double mx[4];
+    mean_rotation(x + 3 * n, n, mx);
+    double gsign;
+    if (space == 1) {
+        gsign = (mx[0] * m[0] + mx[1] * m[1] + mx[2] * m[2] + mx[3] * m[3]) < 0.0 ? -1.0 : 1.0;
+    } else {
+        double r[4];
+        qmul1(m[0], -m[1], -m[2], -m[3], mx[0], mx[1], mx[2], mx[3], r);
+        gsign = r[0] < 0.0 ? -1.0 : 1.0;
+    }
     const double *srcs[2] = {h, x};
     double *dsts[2] = {y, z};
     for (int s = 0; s < 2; s++) {
@@ -461,9 +476,17 @@ static int predict(const double *e_a, const double *e_b, const double *x, long n
         for (long i = 0; i < n; i++) {
             double qw = src[3 * n + i], qx = src[4 * n + i], qy = src[5 * n + i],
                    qz = src[6 * n + i];
+            double sx = 1.0;
+            if (s == 1) {
+                double dx = qw * mx[0] + qx * mx[1] + qy * mx[2] + qz * mx[3];
+                sx = (dx < 0.0 ? -1.0 : 1.0) * gsign;
+            }
             if (space == 1) {
-                double dot = qw * m[0] + qx * m[1] + qy * m[2] + qz * m[3];
-                double sg = dot < 0.0 ? -1.0 : 1.0;
+                double sg = sx;
+                if (s == 0) {
+                    double dot = qw * m[0] + qx * m[1] + qy * m[2] + qz * m[3];
+                    sg = dot < 0.0 ? -1.0 : 1.0;
+                }
                 dst[3 * n + i] = qw * sg;
                 dst[4 * n + i] = qx * sg;
                 dst[5 * n + i] = qy * sg;
@@ -471,7 +494,7 @@ static int predict(const double *e_a, const double *e_b, const double *x, long n
             } else {
                 double r[4];
                 qmul1(m[0], -m[1], -m[2], -m[3], qw, qx, qy, qz, r);
-                double sg = r[0] < 0.0 ? -1.0 : 1.0;
+                double sg = s == 0 ? (r[0] < 0.0 ? -1.0 : 1.0) : sx;
                 dst[3 * n + i] = 2.0 * (r[1] * sg);
                 dst[4 * n + i] = 2.0 * (r[2] * sg);
                 dst[5 * n + i] = 2.0 * (r[3] * sg);
