@@ -68,27 +68,31 @@ def fetch_view(client: Any, samples: bool) -> MapView:
 
 def run_view(opts: ViewOptions, stop: threading.Event,
              ready: Callable[[str], None] | None = None) -> int:
-    """Serve the live scene until ``stop`` is set; returns an exit code (0, or 2 when the
-    server cannot be reached or the WebSocket port cannot be opened).
+    """Serve the live scene until ``stop`` is set; returns 0.
 
     ``ready`` is called once with the WebSocket URL when the Foxglove server listens.
+
+    Raises
+    ------
+    McsmError
+        No server answers within ``opts.timeout_s``, or the WebSocket port cannot be opened.
     """
     from mcsm_client.client import MapClient
 
     fg = load_foxglove()
+    where = opts.connect or "the configured endpoints"
     try:
         client = MapClient(map=opts.map, connect=opts.connect, zenoh_config=opts.zenoh_config,
                            timeout_s=opts.timeout_s, retries=0, prefix=opts.prefix)
-    except McsmError as exc:
-        log.error("%s", exc)
-        return 2
+    except McsmError:
+        raise McsmError(f"cannot reach a Zenoh peer at {where} within {opts.timeout_s:g} s"
+                        ) from None
     try:
         try:
             info = client.wait_for_server(timeout_s=opts.timeout_s)
-        except McsmError as exc:
-            log.error("no server answers for map %r at %s: %s", opts.map,
-                      opts.connect or "the configured endpoints", exc)
-            return 2
+        except McsmError:
+            raise McsmError(f"no server answers for map {opts.map!r} at {where} within "
+                            f"{opts.timeout_s:g} s") from None
         log.info("following map %r (seq %d, %d frames) of server %s", info.map, info.seq,
                  info.n_frames, info.server_id)
         ctx = fg.Context()
@@ -96,9 +100,8 @@ def run_view(opts: ViewOptions, stop: threading.Event,
             server = fg.start_server(name=f"mcsm view {opts.map}", host=opts.host,
                                      port=opts.foxglove_port, context=ctx)
         except Exception as exc:  # foxglove raises its own error types for bind failures
-            log.error("cannot start the Foxglove WebSocket server on %s:%d: %s", opts.host,
-                      opts.foxglove_port, exc)
-            return 2
+            raise McsmError(f"cannot start the Foxglove WebSocket server on "
+                            f"{opts.host}:{opts.foxglove_port}: {exc}") from None
         try:
             return _follow(client, server, ctx, opts, stop, ready)
         finally:
