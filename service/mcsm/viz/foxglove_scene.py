@@ -183,6 +183,7 @@ class ExportReport:
     snapshots: list[int] = field(default_factory=list)  # the seq of each snapshot
     final_seq: int = 0
     notes: list[str] = field(default_factory=list)
+    final_view: MapView | None = None  # the map at its last snapshot (for a PNG of it)
 
 
 class _SnapshotSink:
@@ -252,6 +253,7 @@ def export_foxglove(path: str | os.PathLike[str], out: str | os.PathLike[str], *
             chans.log(build_snapshot(mv, time_ns, samples_per_frame=samples_per_frame),
                       time_ns)
             report.snapshots.append(seq)
+            report.final_view = mv
 
         sink = _SnapshotSink(name, every, emit)
         rep = replay(path, sink=cast(Any, sink))

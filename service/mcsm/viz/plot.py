@@ -36,6 +36,8 @@ _NAMES = "xyz"
 MAX_SAMPLES_PER_FRAME = 250
 #: frames are labelled by name when a component has at most this many of a kind
 MAX_LABELS = 40
+#: a zoomed inset is added when the map is this many times wider than its largest ellipse
+INSET_RATIO = 25.0
 
 
 @dataclass
@@ -50,6 +52,7 @@ class PlotResult:
     truth_drawn: list[str] = field(default_factory=list)
     truth_missing: list[str] = field(default_factory=list)
     n_sample_points: int = 0
+    inset: tuple[float, float, float, float] | None = None  # zoomed region x0, x1, y0, y1
 
 
 def resolve_view(view: str, mv: MapView) -> str:
@@ -107,8 +110,21 @@ def plot_map(mv: MapView, out: str | os.PathLike[str], *, view: str = "auto",
     title = title_of(mv, v, "; ".join([title_extra, *mv.notes]).strip("; "))
     res = PlotResult(Path(out), v, title)
     colours = plt.get_cmap("tab10").colors
-    fig = plt.figure(figsize=(8.5, 7.5))
-    ax: Any = fig.add_subplot(projection="3d") if v == "3d" else fig.add_subplot()
+    axz: Any = None
+    if v == "3d":
+        fig = plt.figure(figsize=(8.5, 7.5))
+        ax: Any = fig.add_subplot(projection="3d")
+    else:
+        i, j = _AXES[v]
+        sel = np.ix_([i, j], [i, j])
+        for f in mv.frames:
+            res.ellipses[f.name] = ellipse(f.position[[i, j]], f.cov[:3, :3][sel])
+        res.inset = _zoom_region(mv, v, res)
+        if res.inset is None:
+            fig, ax = plt.subplots(figsize=(8.5, 7.5))
+        else:  # ellipses too small to see at the map's scale: a magnified panel beside it
+            fig, (ax, axz) = plt.subplots(1, 2, figsize=(13, 7.2),
+                                          gridspec_kw={"width_ratios": [1.9, 1]})
     handles: list[Any] = []
     n_pose_total = sum(not f.is_point for f in mv.frames)
     n_point_total = len(mv.frames) - n_pose_total
@@ -172,6 +188,8 @@ def plot_map(mv: MapView, out: str | os.PathLike[str], *, view: str = "auto",
     if samples:
         handles.append(lines_mod.Line2D([], [], color="grey", marker=".", ls="", alpha=0.4,
                                         label="samples"))
+    if axz is not None and res.inset is not None:
+        _draw_zoom(ax, axz, mv, v, res, truth, colours, patches)
     if v == "3d":
         ax.set_xlabel("x [m]")
         ax.set_ylabel("y [m]")
@@ -191,7 +209,7 @@ def plot_map(mv: MapView, out: str | os.PathLike[str], *, view: str = "auto",
         ax.set_ylabel(f"{_NAMES[j]} [m]")
         ax.set_aspect("equal", adjustable="datalim")
         ax.grid(alpha=0.3)
-    ax.set_title(title, fontsize=9)
+    fig.suptitle(title, fontsize=9)
     if handles:
         ax.legend(handles=handles, fontsize=8, loc="best", framealpha=0.85)
     fig.tight_layout()
@@ -213,10 +231,8 @@ def _label(ax: Any, v: str, p: Array, text: str, col: Any, small: bool = False) 
 def _draw_2d(ax: Any, v: str, pts: list[Any], poses: list[Any], col: Any, res: PlotResult,
              tick: float, patches: Any) -> None:
     i, j = _AXES[v]
-    sel = np.ix_([i, j], [i, j])
     for f in pts + poses:
-        e = ellipse(f.position[[i, j]], f.cov[:3, :3][sel])
-        res.ellipses[f.name] = e
+        e = res.ellipses[f.name]
         ax.add_patch(patches.Ellipse(e.center, e.width, e.height, angle=e.angle_deg,
                                      fill=False, edgecolor=col, lw=0.8,
                                      ls="-" if f.is_point else "--", zorder=3))
@@ -258,3 +274,64 @@ def _draw_3d(ax: Any, pts: list[Any], poses: list[Any], col: Any, res: PlotResul
             h = _heading(f.mean) * tick
             ax.plot([f.position[0], f.position[0] + h[0]], [f.position[1], f.position[1] + h[1]],
                     [f.position[2], f.position[2] + h[2]], color="black", lw=1.0)
+
+
+def _zoom_region(mv: MapView, v: str, res: PlotResult
+                 ) -> tuple[float, float, float, float] | None:
+    """A square region around the frame with the largest ellipse, when the map is more than
+    :data:`INSET_RATIO` times wider than that ellipse (else None): ``x0, x1, y0, y1``."""
+    if len(res.ellipses) < 2:
+        return None
+    i, j = _AXES[v]
+    pos = np.array([[f.position[i], f.position[j]] for f in mv.frames])
+    extent = float(np.max(pos.max(axis=0) - pos.min(axis=0)))
+    focus = max(res.ellipses, key=lambda n: res.ellipses[n].width)
+    e = res.ellipses[focus]
+    if e.width <= 0 or extent < INSET_RATIO * e.width:
+        return None
+    half = max(3.0 * e.width, 0.03 * extent)
+    cx, cy = e.center
+    return (cx - half, cx + half, cy - half, cy + half)
+
+
+def _draw_zoom(ax: Any, axz: Any, mv: MapView, v: str, res: PlotResult,
+               truth: dict[str, Array] | None, colours: Any, patches: Any) -> None:
+    """The frames inside ``res.inset`` drawn magnified in ``axz``; the region marked on ``ax``."""
+    assert res.inset is not None
+    x0, x1, y0, y1 = res.inset
+    i, j = _AXES[v]
+    for f in mv.frames:
+        px, py = f.position[i], f.position[j]
+        el = res.ellipses[f.name]
+        if not (x0 - el.width <= px <= x1 + el.width and y0 - el.width <= py <= y1 + el.width):
+            continue
+        col = colours[mv.components.index(f.component) % len(colours)]
+        axz.add_patch(patches.Ellipse(el.center, el.width, el.height, angle=el.angle_deg,
+                                      fill=False, edgecolor=col, lw=1.2,
+                                      ls="-" if f.is_point else "--"))
+        axz.scatter([px], [py], s=14, color=col, marker="o" if f.is_point else "^", zorder=4)
+        if x0 <= px <= x1 and y0 <= py <= y1:
+            axz.annotate(f.name, (px, py), xytext=(4, 4), textcoords="offset points",
+                         fontsize=8, color=col)
+        if f.samples is not None and res.n_sample_points:
+            c = f.samples[_stride(len(f.samples)), :3]
+            axz.scatter(c[:, i], c[:, j], s=2, color=col, alpha=0.3, linewidths=0)
+        if truth and f.name in truth:
+            t = truth[f.name]
+            axz.scatter([t[i]], [t[j]], marker="x", color="black", s=30, linewidths=1.0,
+                        zorder=5)
+            axz.plot([px, t[i]], [py, t[j]], color="black", lw=0.5, alpha=0.6)
+    for ci, root in enumerate(mv.components):
+        path = np.array([f.position for f in mv.pose_path(root)])
+        if len(path) > 1:
+            axz.plot(path[:, i], path[:, j], color=colours[ci % len(colours)], lw=1.0,
+                     alpha=0.7)
+    axz.set_xlim(x0, x1)
+    axz.set_ylim(y0, y1)
+    axz.set_aspect("equal")
+    axz.grid(alpha=0.3)
+    axz.set_xlabel(f"{_NAMES[i]} [m]")
+    axz.set_ylabel(f"{_NAMES[j]} [m]")
+    axz.set_title(f"magnified: the {x1 - x0:.3g} m square in the grey box", fontsize=9)
+    ax.add_patch(patches.Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, edgecolor="0.35",
+                                   lw=1.0, zorder=6))
