@@ -127,10 +127,13 @@ def _plot(args: argparse.Namespace) -> int:
         print(f"mcsm plot: warning: {note}", file=sys.stderr)
     res = plot_map(mv, args.output, view=args.view, samples=args.samples, truth=truth)
     if res.truth_missing:
-        print(f"mcsm plot: {len(res.truth_missing)} ground-truth frames are not in the map "
+        n = len(res.truth_missing)
+        print(f"mcsm plot: {n} ground-truth frame{' is' if n == 1 else 's are'} not in the map "
               f"(e.g. {res.truth_missing[0]})", file=sys.stderr)
+    n_comp = len(mv.components)
     print(f"{args.output}: map {loaded.name!r} at seq {loaded.seq} of {loaded.last_seq}, "
-          f"{len(mv.frames)} frames, {len(mv.components)} components, view {res.view}")
+          f"{len(mv.frames)} frames, {n_comp} component{'' if n_comp == 1 else 's'}, "
+          f"view {res.view}")
     return 0
 
 
