@@ -10,6 +10,7 @@ import pytest
 from mcap.reader import SeekingReader, make_reader
 from mcsm import cli
 from mcsm.recording import RecordingReader
+from mcsm.viz.foxglove_scene import export_foxglove
 
 from tests.viz.conftest import N, Recording, build_map
 from tests.viz.foxglove_util import check_scene_against_map, message_class
@@ -29,7 +30,7 @@ def test_export_reads_back_indexed_with_the_maps_ellipsoids(
     out = tmp_path / "scene.mcap"
     assert cli.main(["export-foxglove", str(recording.path), "-o", str(out), "--every",
                      "5"]) == 0
-    assert "4 snapshots up to seq 16" in capsys.readouterr().out
+    assert "4 snapshots (every 5 operations) up to seq 16" in capsys.readouterr().out
     with open(out, "rb") as fh:
         reader = make_reader(fh)
         assert isinstance(reader, SeekingReader)
@@ -90,10 +91,29 @@ def test_export_other_map_and_refusals(recording: Recording, tmp_path: Path,
         assert summary is not None
         topics = {c.topic for c in summary.channels.values()}
         assert topics == {"/mcsm/other/scene", "/mcsm/other/tf"}  # no samples: no cloud
-    capsys.readouterr()
+    assert "1 snapshot (every 1 operation) up to seq 1" in capsys.readouterr().out
     assert cli.main(["export-foxglove", str(recording.path), "-o", str(out), "--map",
                      "other"]) == 2
     assert "exists (--force overwrites it)" in capsys.readouterr().err
     assert cli.main(["export-foxglove", str(recording.path), "-o", str(out), "--every",
                      "0"]) == 2
     assert "--every must be at least 1" in capsys.readouterr().err
+
+
+def test_export_default_every_and_a_cut_recording(recording: Recording, tmp_path: Path,
+                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "all.mcap"
+    rep = export_foxglove(recording.path, out, map_name="default", samples_per_frame=0)
+    assert rep.every == 1 and rep.snapshots == list(range(1, 17))  # 16 ops: K = ceil(16/100)
+    assert rep.final_view is not None and rep.final_view.seq == 16 and rep.notes == []
+    # a copy cut in the middle (like a SIGKILLed server's file): every complete input, a warning
+    data = recording.path.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: int(len(data) * 0.6)])
+    want_seq = max(int(r.data["seq"]) for r in RecordingReader(cut)
+                    if r.topic.startswith("/mcsm/in/") and r.data["map"] == "default")
+    assert 0 < want_seq < 16
+    assert cli.main(["export-foxglove", str(cut), "-o", str(tmp_path / "c.mcap")]) == 0
+    cap = capsys.readouterr()
+    assert f"up to seq {want_seq};" in cap.out
+    assert "warning: recording is cut short" in cap.err

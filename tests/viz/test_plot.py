@@ -144,3 +144,13 @@ def test_cli_plot_without_matplotlib_names_the_extra(recording: Recording, tmp_p
     assert err == ("mcsm plot: matplotlib is not installed; install the extra: "
                    "pip install 'mcsm[viz]'")
     assert not (tmp_path / "x.png").exists()
+
+
+def test_cli_plot_of_a_cut_recording_warns(recording: Recording, tmp_path: Path) -> None:
+    data = recording.path.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: int(len(data) * 0.6)])
+    code, stdout, stderr = run_cli("plot", str(cut), "-o", str(tmp_path / "c.png"))
+    assert code == 0, stderr
+    assert "mcsm plot: warning: recording is cut short" in stderr and "Traceback" not in stderr
+    assert (tmp_path / "c.png").stat().st_size > 0

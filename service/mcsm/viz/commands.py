@@ -53,9 +53,9 @@ def add_parsers(sub: Any) -> None:
     e.add_argument("file", type=Path, help="recording (.mcap) written by mcsm serve")
     e.add_argument("-o", "--output", type=Path, default=Path("scene.mcap"), metavar="MCAP",
                    help="output scene file (default scene.mcap)")
-    e.add_argument("--every", type=int, default=1, metavar="K",
+    e.add_argument("--every", type=int, default=None, metavar="K",
                    help="a snapshot after every K-th operation of the map, and the last one "
-                        "(default 1)")
+                        "(default: K giving at most 100 snapshots)")
     e.add_argument("--map", default=None, metavar="NAME",
                    help="which map (default: 'default' or the recording's only map)")
     e.add_argument("--samples-per-frame", type=int, default=100, metavar="M",
@@ -140,7 +140,7 @@ def _plot(args: argparse.Namespace) -> int:
 def _export(args: argparse.Namespace) -> int:
     from mcsm.viz.foxglove_scene import export_foxglove, load_foxglove
 
-    if args.every < 1:
+    if args.every is not None and args.every < 1:
         raise McsmError("--every must be at least 1")
     if args.samples_per_frame < 0:
         raise McsmError("--samples-per-frame must be at least 0")
@@ -151,8 +151,10 @@ def _export(args: argparse.Namespace) -> int:
                           samples_per_frame=args.samples_per_frame, overwrite=args.force)
     for note in rep.notes:
         print(f"mcsm export-foxglove: warning: {note}", file=sys.stderr)
-    print(f"{args.output}: map {rep.map!r}, {len(rep.snapshots)} snapshots up to seq "
-          f"{rep.final_seq}; open it in the Foxglove app (3D panel, display frame "
+    n = len(rep.snapshots)
+    print(f"{args.output}: map {rep.map!r}, {n} snapshot{'' if n == 1 else 's'} (every "
+          f"{rep.every} operation{'' if rep.every == 1 else 's'}) up to seq {rep.final_seq}; "
+          f"open it in the Foxglove app (3D panel, display frame "
           f"mcsm@{rep.map})")
     return 0
 

@@ -41,6 +41,8 @@ PALETTE = [(0.12, 0.47, 0.71), (1.0, 0.5, 0.05), (0.17, 0.63, 0.17), (0.84, 0.15
            (0.58, 0.4, 0.74), (0.55, 0.34, 0.29), (0.89, 0.47, 0.76), (0.5, 0.5, 0.5),
            (0.74, 0.74, 0.13), (0.09, 0.75, 0.81)]
 DEFAULT_SAMPLES_PER_FRAME = 100
+#: snapshots of an export without ``every``: K = ceil(operations / 100)
+MAX_AUTO_SNAPSHOTS = 100
 
 
 def display_frame(map_name: str) -> str:
@@ -180,6 +182,7 @@ class SceneChannels:
 class ExportReport:
     path: Path
     map: str
+    every: int = 1
     snapshots: list[int] = field(default_factory=list)  # the seq of each snapshot
     final_seq: int = 0
     notes: list[str] = field(default_factory=list)
@@ -222,13 +225,14 @@ class _SnapshotSink:
 
 
 def export_foxglove(path: str | os.PathLike[str], out: str | os.PathLike[str], *,
-                    every: int = 1, map_name: str | None = None,
+                    every: int | None = None, map_name: str | None = None,
                     samples_per_frame: int = DEFAULT_SAMPLES_PER_FRAME,
                     overwrite: bool = False) -> ExportReport:
     """Replay ``path`` and write one map's scene over time into the MCAP file ``out``.
 
     A snapshot is written after every ``every``-th input of the map and after its last one,
-    stamped with the input's receive time. The output is foxglove-sdk's MCAP writer's own
+    stamped with the input's receive time. ``every=None`` picks the smallest K that gives at
+    most :data:`MAX_AUTO_SNAPSHOTS` snapshots. The output is foxglove-sdk's MCAP writer's own
     (chunked, indexed, zstd).
 
     Raises
@@ -239,11 +243,14 @@ def export_foxglove(path: str | os.PathLike[str], out: str | os.PathLike[str], *
     from mcsm.recording import replay
     from mcsm.viz.scene import choose_map, recording_maps
 
-    if every < 1:
+    if every is not None and every < 1:
         raise ValueError("every must be >= 1")
     fg = load_foxglove()
-    name = choose_map(list(recording_maps(path)), map_name, str(path))
-    report = ExportReport(Path(out), name)
+    counts = recording_maps(path)
+    name = choose_map(list(counts), map_name, str(path))
+    if every is None:
+        every = max(1, -(-len(counts[name]) // MAX_AUTO_SNAPSHOTS))
+    report = ExportReport(Path(out), name, every=every)
     ctx = fg.Context()
     with fg.open_mcap(str(out), allow_overwrite=overwrite, context=ctx):
         chans = SceneChannels(name, ctx)
