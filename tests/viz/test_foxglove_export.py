@@ -3,6 +3,7 @@ the replayed map's 95 % regions."""
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -117,3 +118,16 @@ def test_export_default_every_and_a_cut_recording(recording: Recording, tmp_path
     cap = capsys.readouterr()
     assert f"up to seq {want_seq};" in cap.out
     assert "warning: recording is cut short" in cap.err
+
+
+def test_export_and_view_without_foxglove_name_the_extra(
+        recording: Recording, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    monkeypatch.setitem(sys.modules, "foxglove", None)  # import foxglove -> ImportError
+    out = tmp_path / "s.mcap"
+    assert cli.main(["export-foxglove", str(recording.path), "-o", str(out)]) == 2
+    want = "foxglove is not installed; install the extra: pip install 'mcsm[viz]'"
+    assert capsys.readouterr().err.strip() == f"mcsm export-foxglove: {want}"
+    assert not out.exists()
+    assert cli.main(["view", "--connect", "tcp/127.0.0.1:9", "--timeout", "1"]) == 2
+    assert capsys.readouterr().err.strip() == f"mcsm view: {want}"
