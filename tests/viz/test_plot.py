@@ -49,6 +49,10 @@ def test_plot_map_draws_the_marginals_of_the_replayed_map(recording: Recording,
         np.testing.assert_allclose([*e.center, e.width, e.height], [cx, cy, w, h],
                                    rtol=1e-9, atol=1e-12, err_msg=name)
     assert any(e.width > 0.05 for e in res.ellipses.values())
+    # one colour per component; the path runs through the pose frames in the order added
+    assert set(res.colours) == {"x0", "q0"} and res.colours["x0"] != res.colours["q0"]
+    assert res.paths == {"x0": ["x0", "x1", "x2", "x4", "x5", "x6", "x7", "x8"],
+                         "q0": ["q0", "q1"]}
     assert res.n_sample_points == len(want) * 64  # N = 64 < 250: every sample is drawn
     img = matplotlib.image.imread(res.path)
     assert img.ndim == 3 and img.shape[0] > 300 and img.shape[1] > 300

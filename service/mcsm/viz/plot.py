@@ -53,6 +53,8 @@ class PlotResult:
     truth_missing: list[str] = field(default_factory=list)
     n_sample_points: int = 0
     inset: tuple[float, float, float, float] | None = None  # zoomed region x0, x1, y0, y1
+    colours: dict[str, tuple[float, ...]] = field(default_factory=dict)  # component -> RGB
+    paths: dict[str, list[str]] = field(default_factory=dict)  # component -> pose frames drawn
 
 
 def resolve_view(view: str, mv: MapView) -> str:
@@ -137,6 +139,8 @@ def plot_map(mv: MapView, out: str | os.PathLike[str], *, view: str = "auto",
         pts = [f for f in frames if f.is_point]
         poses = [f for f in frames if not f.is_point]
         label = f"component {root} ({len(frames)} frames)"
+        res.colours[root] = tuple(float(c) for c in col)
+        res.paths[root] = [f.name for f in poses]
         if samples:
             cloud = [f.samples[_stride(len(f.samples)), :3] for f in frames
                      if f.samples is not None]
