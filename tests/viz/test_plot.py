@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -158,3 +159,19 @@ def test_cli_plot_of_a_cut_recording_warns(recording: Recording, tmp_path: Path)
     assert code == 0, stderr
     assert "mcsm plot: warning: recording is cut short" in stderr and "Traceback" not in stderr
     assert (tmp_path / "c.png").stat().st_size > 0
+
+
+def test_plot_map_opens_no_window_and_leaves_pyplot_alone(tmp_path: Path) -> None:
+    """In a fresh interpreter: drawing a map loads neither pyplot nor an interactive backend."""
+    code = ("import sys, numpy as np; from mcsm import StochasticMap; "
+            "from mcsm.viz.scene import map_view; from mcsm.viz.plot import plot_map; "
+            "m = StochasticMap(8); x = np.zeros((8, 7)); x[:, 3] = 1; "
+            "x[:, 0] = np.linspace(0.9, 1.1, 8); m.update('a', 'b', x); "
+            f"r = plot_map(map_view(m), {str(tmp_path / 'w.png')!r}, view='3d'); "
+            "print(sorted(k for k in sys.modules if k.startswith('matplotlib.pyplot') "
+            "or k.startswith('matplotlib.backends.backend_') and 'agg' not in k))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120, env={**os.environ, "MPLBACKEND": "TkAgg"})
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
+    assert (tmp_path / "w.png").stat().st_size > 0

@@ -1,4 +1,7 @@
-"""``mcsm plot``: a map drawn with matplotlib (Agg backend, no window), written as a PNG.
+"""``mcsm plot``: a map drawn with matplotlib, written as a PNG.
+
+Drawn with matplotlib's object API on an Agg canvas: no pyplot, no window, and a caller's own
+backend and figures are left alone.
 
 Drawn per component (one colour each, every frame relative to the component's root):
 landmarks (point frames) as dots with their 95 % covariance ellipses, pose frames as triangles
@@ -102,19 +105,21 @@ def plot_map(mv: MapView, out: str | os.PathLike[str], *, view: str = "auto",
     MissingExtra
         If matplotlib is not installed.
     """
+    # matplotlib's object API with an Agg canvas: no pyplot, no window, and the caller's
+    # backend and global figure state stay as they were
     matplotlib = require("matplotlib")
-    matplotlib.use("Agg")
-    plt = require("matplotlib.pyplot")
+    figure_mod = require("matplotlib.figure")
+    agg = require("matplotlib.backends.backend_agg")
     patches = require("matplotlib.patches")
     lines_mod = require("matplotlib.lines")
 
     v = resolve_view(view, mv)
     title = title_of(mv, v, "; ".join([title_extra, *mv.notes]).strip("; "))
     res = PlotResult(Path(out), v, title)
-    colours = plt.get_cmap("tab10").colors
+    colours = matplotlib.colormaps["tab10"].colors
     axz: Any = None
     if v == "3d":
-        fig = plt.figure(figsize=(8.5, 7.5))
+        fig = figure_mod.Figure(figsize=(8.5, 7.5))
         ax: Any = fig.add_subplot(projection="3d")
     else:
         i, j = _AXES[v]
@@ -123,10 +128,11 @@ def plot_map(mv: MapView, out: str | os.PathLike[str], *, view: str = "auto",
             res.ellipses[f.name] = ellipse(f.position[[i, j]], f.cov[:3, :3][sel])
         res.inset = _zoom_region(mv, v, res)
         if res.inset is None:
-            fig, ax = plt.subplots(figsize=(8.5, 7.5))
+            fig = figure_mod.Figure(figsize=(8.5, 7.5))
+            ax = fig.add_subplot()
         else:  # ellipses too small to see at the map's scale: a magnified panel beside it
-            fig, (ax, axz) = plt.subplots(1, 2, figsize=(13, 7.2),
-                                          gridspec_kw={"width_ratios": [1.9, 1]})
+            fig = figure_mod.Figure(figsize=(13, 7.2))
+            ax, axz = fig.subplots(1, 2, gridspec_kw={"width_ratios": [1.9, 1]})
     handles: list[Any] = []
     n_pose_total = sum(not f.is_point for f in mv.frames)
     n_point_total = len(mv.frames) - n_pose_total
@@ -217,8 +223,8 @@ def plot_map(mv: MapView, out: str | os.PathLike[str], *, view: str = "auto",
     if handles:
         ax.legend(handles=handles, fontsize=8, loc="best", framealpha=0.85)
     fig.tight_layout()
-    fig.savefig(res.path, dpi=dpi)
-    plt.close(fig)
+    agg.FigureCanvasAgg(fig)
+    fig.savefig(res.path, dpi=dpi, format="png")
     return res
 
 
