@@ -9,8 +9,11 @@ What it does, all on loopback (no network, no second machine):
    truth; writes ``sim.csv`` and ``sim.png``;
 3. starts a second server for robot B and runs the multi-robot demo (two maps, rendezvous
    join through ``export_submap``/``import_submap``, loop closures across robots);
-4. prints an accuracy summary and where the files are, and stops both servers with SIGINT
-   (their recordings are closed cleanly; ``mcsm replay`` checks them).
+4. stops the servers with SIGINT (their recordings are closed cleanly; ``mcsm replay`` checks
+   them), replays the simulation's recording once and writes a picture of its final map,
+   ``map.png`` (``mcsm plot``, with the ground truth from ``truth.csv``), and ``scene.mcap``,
+   the map over time for the Foxglove app (``mcsm export-foxglove``; needs the ``viz`` extra);
+5. prints an accuracy summary and where the files are.
 
 Run ``python -m mcsm_client.demo --help`` for the knobs (N, iterations, seed, output folder).
 """
@@ -18,6 +21,7 @@ Run ``python -m mcsm_client.demo --help`` for the knobs (N, iterations, seed, ou
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import os
 import queue
@@ -34,7 +38,7 @@ from typing import IO, Any
 
 import numpy as np
 
-__all__ = ["DemoConfig", "ServerProcess", "free_port", "main", "run_demo"]
+__all__ = ["DemoConfig", "ServerProcess", "draw_map", "free_port", "main", "run_demo"]
 
 
 def free_port() -> int:
@@ -168,6 +172,7 @@ class DemoConfig:
     out_dir: Path | None = None
     multirobot: bool = True
     multirobot_samples: int = 500
+    scene_every: int = 50
 
 
 @dataclass
@@ -191,13 +196,15 @@ def run_demo(config: DemoConfig, *, log: Any = print) -> DemoReport:
     report = DemoReport(out_dir=out)
     rng = np.random.default_rng(config.seed)
     sim_rng, mr_rng = rng.spawn(2)
+    # the scenario run_sim will draw (from its first child of sim_rng), for the ground truth
+    scenario = _sim_scenario(copy.deepcopy(sim_rng), config)
 
-    log(f"[1/3] starting mcsm serve (N={config.n_samples}) ...")
+    log(f"[1/4] starting mcsm serve (N={config.n_samples}) ...")
     with ServerProcess(out / "server.mcap", n_samples=config.n_samples) as server:
         log(f"      listening on {server.endpoint}, recording {server.record}")
         with MapClient(connect=server.endpoint, timeout_s=30.0) as client:
             client.wait_for_server(timeout_s=30.0)
-            log(f"[2/3] paper §6 simulation: {config.n_iterations} iterations, "
+            log(f"[2/4] paper §6 simulation: {config.n_iterations} iterations, "
                 f"sigma_theta={config.sigma_theta_deg} deg")
 
             def show(row: Any) -> None:
@@ -209,7 +216,7 @@ def run_demo(config: DemoConfig, *, log: Any = print) -> DemoReport:
             sim_cfg = SimConfig(n_iterations=config.n_iterations,
                                 sigma_theta_deg=config.sigma_theta_deg,
                                 score_every=config.score_every)
-            sim = run_sim(sim_cfg, client, rng=sim_rng, progress=show)
+            sim = run_sim(sim_cfg, client, rng=sim_rng, scenario=scenario, progress=show)
             info = client.info()
         report.files.append(sim.write_csv(out / "sim.csv"))
         try:
@@ -223,7 +230,7 @@ def run_demo(config: DemoConfig, *, log: Any = print) -> DemoReport:
         log(f"      {sim.summary()}")
 
         if config.multirobot:
-            log(f"[3/3] multi-robot demo: robot B on its own server (N="
+            log(f"[3/4] multi-robot demo: robot B on its own server (N="
                 f"{config.multirobot_samples})")
             mr_maps = ServerProcess(out / "robot-a.mcap", n_samples=config.multirobot_samples)
             mr_b = ServerProcess(out / "robot-b.mcap", n_samples=config.multirobot_samples)
@@ -241,6 +248,9 @@ def run_demo(config: DemoConfig, *, log: Any = print) -> DemoReport:
                 "cross_loop_closures": mr.cross_loop_closures}
             report.files += [srv_a.record, srv_b.record]
     report.files.insert(0, server.record)
+    log("[4/4] pictures of the simulation's map: replaying its recording")
+    report.files += draw_map(server.record, out, truth=_truth_rows(scenario, sim.final.iteration),
+                             every=config.scene_every, log=lambda s: log(f"      {s}"))
     report.files.append(out / "summary.json")
     log("")
     log("accuracy summary")
@@ -257,8 +267,71 @@ def run_demo(config: DemoConfig, *, log: Any = print) -> DemoReport:
     for p in report.files:
         log(f"  {p}")
     log(f"check a recording replays bit-identically: .venv/bin/mcsm replay {server.record}")
+    if (out / "scene.mcap").exists():
+        log(f"see the map: open {out / 'map.png'}, or drag {out / 'scene.mcap'} into the "
+            "Foxglove app (3D panel, display frame mcsm@default); a live map: .venv/bin/mcsm "
+            "view --connect <endpoint> (docs/visualising.md)")
     (out / "summary.json").write_text(json.dumps(report.figures, indent=2, default=str))
     return report
+
+
+def _sim_scenario(sim_rng: np.random.Generator, config: DemoConfig) -> Any:
+    """The scenario ``run_sim`` generates from ``sim_rng`` (same children, same draws)."""
+    from mcsm_client.scenario import generate_paper_scenario
+    from mcsm_client.sim import SimConfig
+
+    scen_rng, _ = sim_rng.spawn(2)
+    cfg = SimConfig(n_iterations=config.n_iterations, sigma_theta_deg=config.sigma_theta_deg,
+                    score_every=config.score_every)
+    return generate_paper_scenario(cfg.scenario_config(), scen_rng)
+
+
+def _truth_rows(scenario: Any, k: int) -> list[tuple[str, float, float]]:
+    """Ground truth in x0's frame: every landmark and the robot's last pose ``x{k}``."""
+    from mcsm_client.scenario import landmark_frame, landmarks_in_frame, pose_frame
+
+    rows = [(landmark_frame(j), float(p[0]), float(p[1]))
+            for j, p in enumerate(landmarks_in_frame(scenario, 0))]
+    return rows + [(pose_frame(k), float(scenario.poses[k][0]), float(scenario.poses[k][1]))]
+
+
+def draw_map(record: Path, out: Path, *, truth: list[tuple[str, float, float]] | None = None,
+             every: int = 50, log: Any = print) -> list[Path]:
+    """``scene.mcap`` (``mcsm export-foxglove``) and ``map.png`` (``mcsm plot``) of the map
+    ``default`` of ``record``, from one replay; ``truth.csv`` beside them when ``truth`` is
+    given. Without the ``viz`` extra it says so and returns no files."""
+    from mcsm.errors import McsmError
+    from mcsm.viz.foxglove_scene import export_foxglove
+    from mcsm.viz.plot import plot_map
+    from mcsm.viz.scene import read_truth
+
+    files = []
+    truth_xyz = None
+    if truth:
+        path = out / "truth.csv"
+        path.write_text("frame,x,y\n" + "".join(f"{f},{x!r},{y!r}\n" for f, x, y in truth))
+        files.append(path)
+        truth_xyz = read_truth(path)
+    try:
+        rep = export_foxglove(record, out / "scene.mcap", every=every, map_name="default",
+                              overwrite=True)
+    except McsmError as exc:
+        log(f"(no map pictures: {exc})")
+        return files
+    files.append(rep.path)
+    log(f"{rep.path}: {len(rep.snapshots)} snapshots up to seq {rep.final_seq} for Foxglove")
+    for note in rep.notes:
+        log(f"warning: {note}")
+    if rep.final_view is not None:
+        try:
+            res = plot_map(rep.final_view, out / "map.png", truth=truth_xyz)
+        except McsmError as exc:
+            log(f"(no map.png: {exc})")
+            return files
+        files.append(res.path)
+        log(f"{res.path}: the map at seq {rep.final_view.seq} ({len(rep.final_view.frames)} "
+            f"frames, view {res.view})")
+    return files
 
 
 def main(argv: list[str] | None = None) -> int:

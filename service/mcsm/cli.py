@@ -7,6 +7,10 @@
                [--zenoh-config FILE]
     mcsm replay FILE.mcap
     mcsm inspect FILE.mcap
+    mcsm plot FILE.mcap -o map.png [--map NAME] [--at SEQ] [--samples] [--truth CSV]
+              [--view auto|top|xz|yz|3d]
+    mcsm export-foxglove FILE.mcap -o scene.mcap [--every K] [--map NAME]
+    mcsm view [--connect ENDPOINT] [--map NAME] [--foxglove-port P]
 
 ``serve`` prints one line ``listening on <endpoint>`` on stdout when it is ready, and closes
 the recording cleanly on SIGINT or SIGTERM. ``replay`` exits 0 when every checkpoint and the
@@ -81,6 +85,10 @@ def _parser() -> argparse.ArgumentParser:
     i = sub.add_parser("inspect", help="summarise a recording")
     i.add_argument("file", type=Path)
     i.add_argument("--json", action="store_true")
+
+    from mcsm.viz.commands import add_parsers as add_viz_parsers
+
+    add_viz_parsers(sub)  # plot, export-foxglove, view (docs/visualising.md)
     return p
 
 
@@ -91,6 +99,10 @@ def main(argv: list[str] | None = None) -> int:
             return serve(args)
         if args.command == "replay":
             return replay_cmd(args)
+        if args.command in ("plot", "export-foxglove", "view"):
+            from mcsm.viz.commands import run as run_viz
+
+            return run_viz(args)
         return inspect_cmd(args)
     except BrokenPipeError:  # `mcsm inspect FILE | head`: the reader went away
         import os

@@ -1,0 +1,133 @@
+"""``mcsm export-foxglove``: an indexed MCAP scene with foxglove's schemas whose ellipsoids are
+the replayed map's 95 % regions."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import SeekingReader, make_reader
+from mcsm import cli
+from mcsm.recording import RecordingReader
+from mcsm.viz.foxglove_scene import export_foxglove
+
+from tests.viz.conftest import N, Recording, build_map
+from tests.viz.foxglove_util import check_scene_against_map, message_class
+
+SCHEMAS = {"/mcsm/default/scene": "foxglove.SceneUpdate",
+           "/mcsm/default/tf": "foxglove.FrameTransforms",
+           "/mcsm/default/samples": "foxglove.PointCloud"}
+
+
+def recv_times(path: Path, map_name: str) -> dict[int, int]:
+    return {int(r.data["seq"]): int(r.data["recv_ns"]) for r in RecordingReader(path)
+            if r.topic.startswith("/mcsm/in/") and r.data["map"] == map_name}
+
+
+def test_export_reads_back_indexed_with_the_maps_ellipsoids(
+        recording: Recording, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "scene.mcap"
+    assert cli.main(["export-foxglove", str(recording.path), "-o", str(out), "--every",
+                     "5"]) == 0
+    assert "4 snapshots (every 5 operations) up to seq 16" in capsys.readouterr().out
+    with open(out, "rb") as fh:
+        reader = make_reader(fh)
+        assert isinstance(reader, SeekingReader)
+        summary = reader.get_summary()
+        assert summary is not None and summary.chunk_indexes  # chunked and indexed
+        channels = {c.topic: c for c in summary.channels.values()}
+        assert set(channels) == set(SCHEMAS)
+        classes = {}
+        for topic, name in SCHEMAS.items():
+            ch = channels[topic]
+            schema = summary.schemas[ch.schema_id]
+            assert (schema.name, schema.encoding, ch.message_encoding) == \
+                (name, "protobuf", "protobuf")
+            classes[topic] = message_class(name, schema.data)
+        msgs = [(ch.topic, msg) for _s, ch, msg in reader.iter_messages()]
+    by_topic: dict[str, list[object]] = {t: [] for t in SCHEMAS}
+    for topic, msg in msgs:
+        by_topic[topic].append(msg)
+    assert [len(v) for v in by_topic.values()] == [4, 4, 4]
+    times = recv_times(recording.path, "default")
+    seqs = [5, 10, 15, 16]  # every 5th operation and the last one
+    assert [m.log_time for m in by_topic["/mcsm/default/scene"]] == [times[s] for s in seqs]
+    ops = recording.ops["default"]
+    for seq, raw_scene, raw_tf, raw_cloud in zip(seqs, *by_topic.values(), strict=True):
+        m = build_map(ops, seq)  # the map after the first `seq` operations, built in process
+        scene = classes["/mcsm/default/scene"].FromString(raw_scene.data)  # type: ignore
+        check_scene_against_map(scene, m)
+        tf = classes["/mcsm/default/tf"].FromString(raw_tf.data)  # type: ignore
+        roots = m.components()  # type: ignore[attr-defined]
+        pairs = {(t.parent_frame_id, t.child_frame_id): t for t in tf.transforms}
+        for r in roots:
+            assert ("mcsm@default", r) in pairs
+            for f in m.component(r):  # type: ignore[attr-defined]
+                if f != r and not m.is_point(f):  # type: ignore[attr-defined]
+                    t = pairs[(r, f)].translation
+                    mean, _ = m.marginal(r, f)  # type: ignore[attr-defined]
+                    np.testing.assert_allclose([t.x, t.y, t.z], mean[:3], rtol=1e-12)
+        assert len(pairs) == len(roots) + sum(
+            1 for r in roots for f in m.component(r)  # type: ignore[attr-defined]
+            if f != r and not m.is_point(f))  # type: ignore[attr-defined]
+        cloud = classes["/mcsm/default/samples"].FromString(raw_cloud.data)  # type: ignore
+        assert cloud.frame_id == "mcsm@default" and cloud.point_stride == 16
+        assert [f.name for f in cloud.fields] == ["x", "y", "z", "component"]
+        pts = np.frombuffer(cloud.data, dtype="<f4").reshape(-1, 4)
+        want = np.concatenate([m.query(r, f)[:, :3]  # type: ignore[attr-defined]
+                               for r in roots for f in m.component(r)])  # type: ignore
+        assert len(pts) == len(want) == m.n_frames * N  # type: ignore[attr-defined]
+        np.testing.assert_allclose(np.sort(pts[:, 0]), np.sort(want[:, 0]), atol=1e-5)
+
+
+def test_export_other_map_and_refusals(recording: Recording, tmp_path: Path,
+                                       capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "other.mcap"
+    assert cli.main(["export-foxglove", str(recording.path), "-o", str(out), "--map", "other",
+                     "--samples-per-frame", "0"]) == 0
+    with open(out, "rb") as fh:
+        summary = make_reader(fh).get_summary()
+        assert summary is not None
+        topics = {c.topic for c in summary.channels.values()}
+        assert topics == {"/mcsm/other/scene", "/mcsm/other/tf"}  # no samples: no cloud
+    assert "1 snapshot (every 1 operation) up to seq 1" in capsys.readouterr().out
+    assert cli.main(["export-foxglove", str(recording.path), "-o", str(out), "--map",
+                     "other"]) == 2
+    assert "exists (--force overwrites it)" in capsys.readouterr().err
+    assert cli.main(["export-foxglove", str(recording.path), "-o", str(out), "--every",
+                     "0"]) == 2
+    assert "--every must be at least 1" in capsys.readouterr().err
+
+
+def test_export_default_every_and_a_cut_recording(recording: Recording, tmp_path: Path,
+                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "all.mcap"
+    rep = export_foxglove(recording.path, out, map_name="default", samples_per_frame=0)
+    assert rep.every == 1 and rep.snapshots == list(range(1, 17))  # 16 ops: K = ceil(16/100)
+    assert rep.final_view is not None and rep.final_view.seq == 16 and rep.notes == []
+    # a copy cut in the middle (like a SIGKILLed server's file): every complete input, a warning
+    data = recording.path.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: int(len(data) * 0.6)])
+    want_seq = max(int(r.data["seq"]) for r in RecordingReader(cut)
+                    if r.topic.startswith("/mcsm/in/") and r.data["map"] == "default")
+    assert 0 < want_seq < 16
+    assert cli.main(["export-foxglove", str(cut), "-o", str(tmp_path / "c.mcap")]) == 0
+    cap = capsys.readouterr()
+    assert f"up to seq {want_seq};" in cap.out
+    assert "warning: recording is cut short" in cap.err
+
+
+def test_export_and_view_without_foxglove_name_the_extra(
+        recording: Recording, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    monkeypatch.setitem(sys.modules, "foxglove", None)  # import foxglove -> ImportError
+    out = tmp_path / "s.mcap"
+    assert cli.main(["export-foxglove", str(recording.path), "-o", str(out)]) == 2
+    want = "foxglove is not installed; install the extra: pip install 'mcsm[viz]'"
+    assert capsys.readouterr().err.strip() == f"mcsm export-foxglove: {want}"
+    assert not out.exists()
+    assert cli.main(["view", "--connect", "tcp/127.0.0.1:9", "--timeout", "1"]) == 2
+    assert capsys.readouterr().err.strip() == f"mcsm view: {want}"

@@ -1,0 +1,177 @@
+"""``mcsm plot``: a PNG of a replayed map whose drawn ellipses are the map's 95 % regions."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import matplotlib
+import numpy as np
+import pytest
+from mcsm import cli
+from mcsm.viz.plot import plot_map
+from mcsm.viz.scene import is_planar, load_map, map_view
+from scipy.stats import chi2
+
+from tests.viz.conftest import Recording, build_map
+
+matplotlib.use("Agg")
+
+
+def expected_ellipses(m: object, axes: tuple[int, int]) -> dict[str, tuple[float, ...]]:
+    """Centre and full axes of each frame's 95 % ellipse, from the samples with numpy/scipy."""
+    out = {}
+    k = chi2.ppf(0.95, 2)
+    for root in m.components():  # type: ignore[attr-defined]
+        for f in m.component(root):  # type: ignore[attr-defined]
+            xyz = m.query(root, f)[:, :3][:, list(axes)]  # type: ignore[attr-defined]
+            lam = np.linalg.eigvalsh(np.cov(xyz.T))
+            c = xyz.mean(axis=0)
+            out[f] = (c[0], c[1], 2 * np.sqrt(k * max(lam[1], 0)), 2 * np.sqrt(k * max(lam[0], 0)))
+    return out
+
+
+def test_plot_map_draws_the_marginals_of_the_replayed_map(recording: Recording,
+                                                          tmp_path: Path) -> None:
+    loaded = load_map(recording.path)
+    assert loaded.name == "default" and loaded.notes == []
+    ops = recording.ops["default"]
+    assert loaded.seq == loaded.last_seq == len(ops)
+    mv = map_view(loaded.map, map_name=loaded.name, seq=loaded.seq, samples=True)
+    assert is_planar(mv)
+    res = plot_map(mv, tmp_path / "m.png", samples=True)
+    assert res.view == "top"
+    want = expected_ellipses(build_map(ops), (0, 1))
+    assert set(res.ellipses) == set(want) and "x3" not in want  # x3 was removed
+    for name, (cx, cy, w, h) in want.items():
+        e = res.ellipses[name]
+        np.testing.assert_allclose([*e.center, e.width, e.height], [cx, cy, w, h],
+                                   rtol=1e-9, atol=1e-12, err_msg=name)
+    assert any(e.width > 0.05 for e in res.ellipses.values())
+    # one colour per component; the path runs through the pose frames in the order added
+    assert set(res.colours) == {"x0", "q0"} and res.colours["x0"] != res.colours["q0"]
+    assert res.paths == {"x0": ["x0", "x1", "x2", "x4", "x5", "x6", "x7", "x8"],
+                         "q0": ["q0", "q1"]}
+    assert res.n_sample_points == len(want) * 64  # N = 64 < 250: every sample is drawn
+    img = matplotlib.image.imread(res.path)
+    assert img.ndim == 3 and img.shape[0] > 300 and img.shape[1] > 300
+    assert float(np.std(img[..., :3])) > 0.01  # not a blank canvas
+    assert "N=64" in res.title and f"seq {len(ops)}:" in res.title
+    assert f"{len(want)} frames (5 landmarks, 10 poses), 2 components" in res.title
+
+
+def test_plot_at_seq_shows_the_past_map(recording: Recording, tmp_path: Path) -> None:
+    ops = recording.ops["default"]
+    loaded = load_map(recording.path, "default", at_seq=5)
+    assert loaded.seq == 5
+    past = build_map(ops, 5)
+    assert loaded.map.frames() == past.frames()  # type: ignore[attr-defined]
+    assert loaded.map.state_digest() == past.state_digest()  # type: ignore[attr-defined]
+    res = plot_map(map_view(loaded.map, seq=5), tmp_path / "p.png", view="xz")
+    assert res.view == "xz"
+    want = expected_ellipses(past, (0, 2))
+    for name, (cx, cz, w, _h) in want.items():
+        e = res.ellipses[name]
+        np.testing.assert_allclose([*e.center, e.width], [cx, cz, w], rtol=1e-9, atol=1e-12)
+
+
+def test_plot_3d_and_truth(recording: Recording, tmp_path: Path) -> None:
+    loaded = load_map(recording.path)
+    mv = map_view(loaded.map, map_name="default", seq=loaded.seq)
+    truth = {"l0": np.array([1.0, 1.0, 0.0]), "nowhere": np.zeros(3)}
+    res = plot_map(mv, tmp_path / "t.png", view="3d", truth=truth)
+    assert res.view == "3d" and len(res.ellipsoids) == len(mv.frames)
+    assert res.truth_drawn == ["l0"] and res.truth_missing == ["nowhere"]
+    k = chi2.ppf(0.95, 3)
+    for f in mv.frames:
+        lam = np.clip(np.linalg.eigvalsh(f.cov[:3, :3]), 0, None)
+        np.testing.assert_allclose(sorted(res.ellipsoids[f.name].sizes), 2 * np.sqrt(k * lam),
+                                   atol=1e-12)
+
+
+def run_cli(*args: str) -> tuple[int, str, str]:
+    p = subprocess.run([sys.executable, "-m", "mcsm.cli", *args], capture_output=True,
+                       text=True, timeout=300)
+    return p.returncode, p.stdout, p.stderr
+
+
+def test_cli_plot_writes_a_png(recording: Recording, tmp_path: Path) -> None:
+    truth = tmp_path / "truth.csv"
+    truth.write_text("frame,x,y\nl0,1.2,0.9\n")
+    out = tmp_path / "map.png"
+    code, stdout, stderr = run_cli("plot", str(recording.path), "-o", str(out), "--samples",
+                                   "--truth", str(truth))
+    assert code == 0, stderr
+    assert "map 'default' at seq 16 of 16, 15 frames, 2 components, view top" in stdout
+    assert out.stat().st_size > 10_000
+    assert matplotlib.image.imread(out).shape[2] in (3, 4)
+    code, stdout, stderr = run_cli("plot", str(recording.path), "-o", str(out), "--map",
+                                   "other", "--at", "1", "--view", "yz")
+    assert code == 0, stderr
+    assert "map 'other' at seq 1 of 1, 2 frames" in stdout
+
+
+@pytest.mark.parametrize(("args", "needle"), [
+    (["--map", "nope"], "has no map 'nope' (maps: default, other)"),
+    (["--at", "99"], "has sequence numbers 1..16, not 99"),
+    (["-o", "/nonexistent-dir/m.png"], "output folder /nonexistent-dir does not exist"),
+    (["--truth", "/nonexistent.csv"], "cannot read ground truth"),
+])
+def test_cli_plot_user_mistakes(recording: Recording, tmp_path: Path, args: list[str],
+                                needle: str, capsys: pytest.CaptureFixture[str]) -> None:
+    argv = ["plot", str(recording.path), "-o", str(tmp_path / "x.png"), *args]
+    if "-o" in args:
+        argv = ["plot", str(recording.path), *args]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert needle in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+def test_cli_plot_missing_file_and_not_mcap(tmp_path: Path,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    assert cli.main(["plot", str(tmp_path / "none.mcap")]) == 2
+    assert "no such recording" in capsys.readouterr().err
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"not an mcap file at all")
+    assert cli.main(["plot", str(junk), "-o", str(tmp_path / "j.png")]) == 2
+    assert "not an MCAP file" in capsys.readouterr().err
+
+
+def test_cli_plot_without_matplotlib_names_the_extra(recording: Recording, tmp_path: Path,
+                                                     monkeypatch: pytest.MonkeyPatch,
+                                                     capsys: pytest.CaptureFixture[str]
+                                                     ) -> None:
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib -> ImportError
+    assert cli.main(["plot", str(recording.path), "-o", str(tmp_path / "x.png")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == ("mcsm plot: matplotlib is not installed; install the extra: "
+                   "pip install 'mcsm[viz]'")
+    assert not (tmp_path / "x.png").exists()
+
+
+def test_cli_plot_of_a_cut_recording_warns(recording: Recording, tmp_path: Path) -> None:
+    data = recording.path.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: int(len(data) * 0.6)])
+    code, stdout, stderr = run_cli("plot", str(cut), "-o", str(tmp_path / "c.png"))
+    assert code == 0, stderr
+    assert "mcsm plot: warning: recording is cut short" in stderr and "Traceback" not in stderr
+    assert (tmp_path / "c.png").stat().st_size > 0
+
+
+def test_plot_map_opens_no_window_and_leaves_pyplot_alone(tmp_path: Path) -> None:
+    """In a fresh interpreter: drawing a map loads neither pyplot nor an interactive backend."""
+    code = ("import sys, numpy as np; from mcsm import StochasticMap; "
+            "from mcsm.viz.scene import map_view; from mcsm.viz.plot import plot_map; "
+            "m = StochasticMap(8); x = np.zeros((8, 7)); x[:, 3] = 1; "
+            "x[:, 0] = np.linspace(0.9, 1.1, 8); m.update('a', 'b', x); "
+            f"r = plot_map(map_view(m), {str(tmp_path / 'w.png')!r}, view='3d'); "
+            "print(sorted(k for k in sys.modules if k.startswith('matplotlib.pyplot') "
+            "or k.startswith('matplotlib.backends.backend_') and 'agg' not in k))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120, env={**os.environ, "MPLBACKEND": "TkAgg"})
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
+    assert (tmp_path / "w.png").stat().st_size > 0
