@@ -46,7 +46,7 @@ from mcap.writer import Writer
 
 from mcsm import __version__, wire
 from mcsm.core.smap import StochasticMap
-from mcsm.errors import McsmError
+from mcsm.errors import McsmError, RequestIdReused
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +59,10 @@ _SCHEMAS = {TOPIC_CONFIG: ("mcsm.RecordConfig", "record_config.json"),
             TOPIC_CHECKPOINT: ("mcsm.RecordCheckpoint", "record_checkpoint.json"),
             **{t: ("mcsm.RecordInput", "record_input.json") for t in INPUT_TOPICS.values()}}
 MAX_RECORD_BYTES = 2 * wire.MAX_PAYLOAD_BYTES
-DEFAULT_LRU = 10_000
+DEFAULT_LRU = 100_000
+"""Request ids (with their acks) each map remembers at most (about 60 MB at most)."""
+DEFAULT_ID_TTL_S = 600.0
+"""Seconds a request id is remembered (ten minutes: a server restart takes 1-8 s)."""
 
 
 class RecordingError(McsmError):
@@ -85,13 +88,16 @@ class MapState:
     map is built by the same code path as the live one. Not thread-safe: one worker owns it.
     """
 
-    def __init__(self, name: str, smap: StochasticMap, lru_size: int = DEFAULT_LRU) -> None:
+    def __init__(self, name: str, smap: StochasticMap, lru_size: int = DEFAULT_LRU,
+                 id_ttl_s: float = DEFAULT_ID_TTL_S) -> None:
         self.name = name
         self.map = smap
         self.n_samples = int(smap.n_samples)
         self.seq = 0
         self.lru_size = int(lru_size)
-        self._acks: OrderedDict[str, wire.Ack] = OrderedDict()
+        self.id_ttl_s = float(id_ttl_s)
+        # request id -> (ack, request fingerprint, receive time ns), oldest first
+        self._acks: OrderedDict[str, tuple[wire.Ack, str, int]] = OrderedDict()
         self.rejected = 0
         self.rejected_by_error: Counter[str] = Counter()
         self._digest: tuple[int, str] | None = None
@@ -102,16 +108,35 @@ class MapState:
             self._digest = (self.seq, self.map.state_digest())
         return self._digest[1]
 
-    def lookup(self, request_id: str) -> wire.Ack | None:
-        """The original ack of an already applied request id (flagged duplicate), or None."""
-        ack = self._acks.get(request_id)
-        if ack is None:
+    def _forget(self, now_ns: int) -> None:
+        """Drop ids older than ``id_ttl_s`` and beyond ``lru_size`` (oldest first)."""
+        cutoff = now_ns - int(self.id_ttl_s * 1e9)
+        while self._acks:
+            _, (_, _, t_ns) = next(iter(self._acks.items()))
+            if t_ns >= cutoff and len(self._acks) <= self.lru_size:
+                break
+            self._acks.popitem(last=False)
+
+    def lookup(self, request_id: str, fingerprint: str | None = None,
+               now_ns: int | None = None) -> wire.Ack | None:
+        """The original ack of an already applied request id (flagged duplicate), or None.
+
+        Raises
+        ------
+        RequestIdReused
+            If the id is remembered for a request with another ``fingerprint``.
+        """
+        self._forget(time.time_ns() if now_ns is None else now_ns)
+        hit = self._acks.get(request_id)
+        if hit is None:
             return None
-        self._acks.move_to_end(request_id)
+        ack, fp, _ = hit
+        if fingerprint is not None and fp and fp != fingerprint:
+            raise RequestIdReused(request_id, ack.seq)
         return replace(ack, duplicate=True)
 
-    def apply(self, op: str, req: Any) -> wire.Ack:
-        """Apply one decoded input; returns its ack (sequence number ``seq + 1``).
+    def apply(self, op: str, req: Any, *, time_ns: int | None = None) -> wire.Ack:
+        """Apply one decoded input received at ``time_ns``; returns its ack (seq ``seq + 1``).
 
         Raises
         ------
@@ -133,9 +158,10 @@ class MapState:
         else:
             raise McsmError(f"unknown operation {op!r}")
         self.seq = ack.seq
-        self._acks[req.request_id] = ack
-        while len(self._acks) > self.lru_size:
-            self._acks.popitem(last=False)
+        t_ns = time.time_ns() if time_ns is None else int(time_ns)
+        self._acks.pop(req.request_id, None)
+        self._acks[req.request_id] = (ack, wire.request_fingerprint(op, req), t_ns)
+        self._forget(t_ns)
         return ack
 
     def count_rejected(self, err: McsmError) -> None:
@@ -441,7 +467,7 @@ def replay(path: str | os.PathLike[str], *, sink: Recorder | None = None,
             break
         try:
             req = decode_input(op, bytes(d["request"]), st.n_samples)
-            ack = st.apply(op, req)
+            ack = st.apply(op, req, time_ns=int(d["recv_ns"]))
         except McsmError as exc:
             rep.divergence = (f"map {name!r}: input seq {seq} ({op}) was refused on replay: "
                               f"{type(exc).__name__}: {exc}")

@@ -18,6 +18,7 @@ decodes with the very same code. Replay decodes recorded requests through it too
 
 from __future__ import annotations
 
+import hashlib
 import math
 import re
 from collections.abc import Mapping, Sequence
@@ -42,6 +43,9 @@ Samples = npt.NDArray[np.float64]
 
 VERSION = 1
 """Protocol version written in the ``v`` field of every message."""
+
+ENCODING = "application/msgpack"
+"""Zenoh encoding of every payload the server sends (replies, error replies, events)."""
 
 DEFAULT_PREFIX = "mcsm"
 DEFAULT_MAP = "default"
@@ -71,7 +75,12 @@ QueryWant = Literal["samples", "marginal"]
 
 @dataclass(frozen=True)
 class Keys:
-    """The key expressions of one map (``<prefix>/<map>/...``); see ``schemas/KEYS.md``."""
+    """The key expressions of one map (``<prefix>/<map>/...``); see ``schemas/KEYS.md``.
+
+    ``update`` and ``remove`` write any frame; ``update_as(ns)`` and ``remove_as(ns)``
+    (``.../update/<ns>``) write only frames of namespace ``ns``: the shipped access-control
+    lists grant a robot's identity its own namespace's keys alone (``deploy/``).
+    """
 
     prefix: str
     map: str
@@ -80,12 +89,30 @@ class Keys:
         return f"{self.prefix}/{self.map}/{leaf}"
 
     @property
+    def base(self) -> str:
+        """``<prefix>/<map>``: every key of the map is under it."""
+        return f"{self.prefix}/{self.map}"
+
+    @property
+    def all(self) -> str:
+        """``<prefix>/<map>/**``: the server's one queryable (one arrival order per map)."""
+        return self._k("**")
+
+    @property
     def update(self) -> str:
         return self._k("update")
 
     @property
     def remove(self) -> str:
         return self._k("remove")
+
+    def update_as(self, namespace: str) -> str:
+        """Update key restricted to frames ``a`` in ``namespace`` (checked by the server)."""
+        return self._k(f"update/{check_namespace(namespace)}")
+
+    def remove_as(self, namespace: str) -> str:
+        """Remove key restricted to frames in ``namespace`` (checked by the server)."""
+        return self._k(f"remove/{check_namespace(namespace)}")
 
     @property
     def query(self) -> str:
@@ -110,6 +137,37 @@ class Keys:
     @property
     def alive_any(self) -> str:
         return self._k("alive/*")
+
+    def route(self, key: str) -> tuple[str, str]:
+        """``(leaf, namespace)`` of a concrete key of this map: ``("update", "robot1")`` for
+        ``.../update/robot1``, ``("info", "")`` for ``.../info``.
+
+        Raises
+        ------
+        BadMessage
+            If ``key`` is not one of the map's request keys (wildcards included: a request
+            must name one concrete key).
+        """
+        head = self.base + "/"
+        rest = key[len(head):] if key.startswith(head) else ""
+        leaf, _, ns = rest.partition("/")
+        if leaf in ("update", "remove") and (not ns or _NS_RE.fullmatch(ns)):
+            return leaf, ns
+        if leaf in ("query", "info", "submap") and not ns:
+            return leaf, ""
+        raise BadMessage("key", f"one of {self.base}/{{update,remove}}[/<namespace>], "
+                         "query, info or submap (no wildcards)", _short(key))
+
+
+_NS_RE = re.compile(r"[A-Za-z0-9_.:+-]{1,128}")
+
+
+def check_namespace(namespace: str) -> str:
+    """Return ``namespace`` if it is a valid frame-name segment (``robot1``), else raise."""
+    if not isinstance(namespace, str) or not _NS_RE.fullmatch(namespace):
+        raise BadMessage("namespace", "one frame-name segment of [A-Za-z0-9_.:+-]",
+                         _short(namespace))
+    return namespace
 
 
 def map_keys(map_name: str = DEFAULT_MAP, prefix: str = DEFAULT_PREFIX) -> Keys:
@@ -216,7 +274,8 @@ class Ack:
     ``seq`` is the map's sequence number of the operation (1, 2, ... in apply order);
     ``kind`` is the core's result kind (``new_component``, ``new_frame``, ``join``,
     ``loop_closure``, ``import``, ``remove``); ``duplicate`` is true when the request id had
-    already been applied and this is the original acknowledgement, sent again.
+    already been applied and this is the original acknowledgement, sent again; ``server`` is
+    the Zenoh id of the server that applied it (``""`` from an older server).
     """
 
     request_id: str
@@ -227,6 +286,7 @@ class Ack:
     frames_added: tuple[str, ...] = ()
     frames_removed: tuple[str, ...] = ()
     duplicate: bool = False
+    server: str = ""
 
 
 @dataclass(frozen=True)
@@ -611,7 +671,8 @@ def encode_ack(ack: Ack) -> bytes:
     return pack({"v": VERSION, "id": ack.request_id, "seq": ack.seq, "op": ack.op,
                  "kind": ack.kind, "component": ack.component,
                  "frames_added": list(ack.frames_added),
-                 "frames_removed": list(ack.frames_removed), "duplicate": ack.duplicate})
+                 "frames_removed": list(ack.frames_removed), "duplicate": ack.duplicate,
+                 "server": ack.server})
 
 
 def _str_list(obj: Any, fieldname: str) -> tuple[str, ...]:
@@ -623,7 +684,7 @@ def _str_list(obj: Any, fieldname: str) -> tuple[str, ...]:
 def decode_ack(payload: bytes) -> Ack:
     d = unpack(payload, max_bytes=MAX_REPLY_BYTES)
     _keys(d, ("id", "seq", "op", "kind", "component", "frames_added", "frames_removed",
-              "duplicate"))
+              "duplicate"), ("server",))
     comp = d["component"]
     if comp is not None and not isinstance(comp, str):
         raise BadMessage("component", "a frame name or nil", _short(comp))
@@ -631,7 +692,31 @@ def decode_ack(payload: bytes) -> Ack:
                op=_str(d, "op", max_chars=32), kind=_str(d, "kind", max_chars=32),
                component=comp, frames_added=_str_list(d["frames_added"], "frames_added"),
                frames_removed=_str_list(d["frames_removed"], "frames_removed"),
-               duplicate=bool(d["duplicate"]))
+               duplicate=bool(d["duplicate"]),
+               server=_str(d, "server", max_chars=MAX_ID_CHARS, default=""))
+
+
+def request_fingerprint(op: str, req: Any) -> str:
+    """A digest of what a state-changing request asks for (not its id or sender).
+
+    Two requests with one id and the same fingerprint are one request sent twice (a retry);
+    with different fingerprints they are different requests (``RequestIdReused``).
+    """
+    h = hashlib.blake2b(digest_size=16)
+    h.update(op.encode())
+    if isinstance(req, UpdateRequest):
+        h.update(f"\0{req.a}\0{req.b}\0{req.samples.shape}\0".encode())
+        h.update(np.ascontiguousarray(req.samples, dtype=F8).tobytes())
+    elif isinstance(req, RemoveRequest):
+        h.update(f"\0{req.frame}".encode())
+    elif isinstance(req, SubmapImportRequest):
+        sub = req.submap
+        h.update(f"\0{sub.root}\0{'/'.join(sub.frames)}\0{sub.is_point}\0"
+                 f"{sub.edges.shape}\0".encode())
+        h.update(np.ascontiguousarray(sub.edges, dtype=F8).tobytes())
+    else:
+        raise McsmError(f"no fingerprint for {type(req).__name__}")
+    return h.hexdigest()
 
 
 def encode_query_reply(r: QueryReply) -> bytes:

@@ -28,6 +28,8 @@ from mcsm.errors import (
     Busy,
     InvalidSamples,
     LimitExceeded,
+    NoPermittedServer,
+    NoServer,
     NotRelated,
     SampleCountMismatch,
     Timeout,
@@ -124,9 +126,11 @@ def test_open_without_server_times_out_quickly() -> None:
     assert time.monotonic() - t0 < 10.0
 
 
-def test_silence_times_out_and_retries_reuse_the_request_id() -> None:
-    """A queryable that stays silent on the first attempt and answers the second: the client
-    retries with the very same payload (same request id) and returns the answer."""
+def test_silence_is_retried_with_the_same_id_until_the_full_timeout() -> None:
+    """A server (token + queryable) that stays silent on the first attempt and answers the
+    second: the client sends the very same payload (same request id) again and returns the
+    answer. A request never answered fails after its full timeout (not milliseconds), as
+    NoPermittedServer (alive server, no reply at all); with no server: NoServer."""
     ep = free_endpoint()
     srv = zenoh.open(server_config(ep))
     seen: list[str] = []
@@ -140,20 +144,30 @@ def test_silence_times_out_and_retries_reuse_the_request_id() -> None:
         if not first:
             q.reply(q.key_expr, wire.encode_ack(wire.Ack(req.request_id, 1, "update",
                                                          "new_component", req.a,
-                                                         (req.a, req.b))))
+                                                         (req.a, req.b),
+                                                         server=str(srv.zid()))))
         q.drop()
 
     qa = srv.declare_queryable("mcsm/default/update", on_query)
+    tok = srv.liveliness().declare_token(f"mcsm/default/alive/{srv.zid()}")
     try:
         rng = np.random.default_rng(6602)
-        with MapClient(connect=ep, timeout_s=0.5, retries=1) as c:
+        with MapClient(connect=ep, timeout_s=1.0) as c:
             ack = c.update("a", "b", at(rng, [1, 0, 0]))
             assert len(seen) == 2 and seen[0] == seen[1] == ack.request_id
-            # never answered: Timeout after every attempt, in bounded time
+            assert ack.server == c.server_id == str(srv.zid())
             t0 = time.monotonic()
-            with pytest.raises(Timeout):
+            with pytest.raises(NoPermittedServer, match="no permitted server"):
                 c.remove("a")
-            assert time.monotonic() - t0 < 6.0
+            assert 1.0 <= time.monotonic() - t0 < 6.0
+            tok.undeclare()
+            deadline = time.monotonic() + 10
+            while c.servers(0.2) and time.monotonic() < deadline:
+                pass  # the token's removal reaches the client
+            t0 = time.monotonic()
+            with pytest.raises(NoServer, match="no server serves map"):
+                c.remove("a", timeout_s=0.5)
+            assert 0.5 <= time.monotonic() - t0 < 5.0
     finally:
         qa.undeclare()
         srv.close()
@@ -254,14 +268,14 @@ def test_full_queue_answers_busy_at_once(tmp_path: Path) -> None:
     results: dict[str, Any] = {}
 
     def call(name: str, a: str, b: str) -> None:
-        with MapClient(connect=ep, timeout_s=20, retries=0) as c:
+        with MapClient(connect=ep, timeout_s=20) as c:
             results[name] = c.update(a, b, at(rng, [1, 0, 0]))
 
     try:
         t1 = threading.Thread(target=call, args=("first", "a", "b"))
         t1.start()
         assert holding.wait(10.0)
-        with MapClient(connect=ep, timeout_s=20, retries=0) as c:
+        with MapClient(connect=ep, timeout_s=20) as c:
             t2 = threading.Thread(target=call, args=("second", "c", "d"))
             t2.start()
             deadline = time.monotonic() + 10
