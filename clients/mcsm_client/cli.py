@@ -1,7 +1,8 @@
 """``mcsm-client``: talk to an ``mcsm serve`` map from the shell.
 
 Commands (each takes the connection flags ``--connect``, ``--map``, ``--prefix``,
-``--zenoh-config``, and ``--timeout-s``)::
+``--namespace``, ``--zenoh-config`` and ``--timeout-s``, before or after the command name;
+``ZENOH_CONFIG`` names a config file when ``--zenoh-config`` is not given)::
 
     mcsm-client info [--json]
     mcsm-client update A B --planar DX DY DTH --sigma SX SY STH     # AT a->b, N samples drawn
@@ -30,8 +31,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from mcsm.connect import add_connection_args, client_kwargs
-from mcsm.errors import McsmError, Timeout
+from mcsm.connect import (
+    add_connection_args,
+    check_endpoint,
+    client_kwargs,
+    fill_connection_defaults,
+)
+from mcsm.errors import McsmError, NoPermittedServer, NoServer, Timeout
 
 EXIT_OK, EXIT_REFUSED, EXIT_USAGE, EXIT_TIMEOUT, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
 
@@ -41,9 +47,9 @@ class UsageError(Exception):
 
 
 def _add_common(p: argparse.ArgumentParser) -> None:
-    add_connection_args(p)
-    p.add_argument("--timeout-s", type=float, default=10.0,
-                   help="deadline of one request attempt, seconds (default 10)")
+    add_connection_args(p, suppress=True)
+    p.add_argument("--timeout-s", type=float, default=argparse.SUPPRESS,
+                   help="how long one request waits for the server, seconds (default 10)")
 
 
 def _add_in_process(p: argparse.ArgumentParser) -> None:
@@ -59,6 +65,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Client of the Monte Carlo stochastic map server (mcsm serve).",
         epilog="Exit codes: 0 ok, 1 refused by the server, 2 usage or input error, "
                "3 no reply in time, 130 interrupted.")
+    _add_common(p)
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     s = sub.add_parser("info", help="frames, components, N, sequence number and digest")
@@ -456,17 +463,32 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``mcsm-client`` console script; returns the exit code."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    fill_connection_defaults(args)
+    if not hasattr(args, "timeout_s"):
+        args.timeout_s = 10.0
     prog = f"mcsm-client {args.command}"
     try:
+        if not args.timeout_s > 0:
+            raise UsageError("--timeout-s must be > 0")
+        if args.connect is not None:
+            check_endpoint(args.connect)
+        if getattr(args, "connect_b", None):
+            check_endpoint(args.connect_b, "--connect-b")
         return COMMANDS[args.command](args)
     except UsageError as exc:
         print(f"{prog}: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    except (NoServer, NoPermittedServer) as exc:
+        print(f"{prog}: {exc.message}", file=sys.stderr)
+        return EXIT_TIMEOUT
     except Timeout as exc:
         print(f"{prog}: no answer from the server: {exc.message} (is `mcsm serve` running, "
               f"and do --connect/--map/--prefix match it?)", file=sys.stderr)
         return EXIT_TIMEOUT
     except McsmError as exc:
+        if exc.fields.get("field") in ("--connect", "--connect-b", "--zenoh-config"):
+            print(f"{prog}: {exc.message}", file=sys.stderr)  # a usage error, found early
+            return EXIT_USAGE
         print(f"{prog}: refused: {type(exc).__name__}: {exc.message}", file=sys.stderr)
         return EXIT_REFUSED
     except KeyboardInterrupt:

@@ -131,7 +131,8 @@ class MapClient:
         try:
             self.session = zenoh.open(conf)
         except zenoh.ZError as exc:
-            raise Timeout(f"connect to {connect or 'the configured endpoints'} ({exc})",
+            why = str(exc).split(" at /", 1)[0]  # drop zenoh's source location
+            raise Timeout(f"connect to {connect or 'the configured endpoints'} ({why})",
                           self.timeout_s) from None
         self.sender = sender if sender is not None else str(self.session.zid())
         self._id_base = uuid.uuid4().hex[:16]

@@ -2,7 +2,7 @@
 
 ::
 
-    mcsm serve [--listen tcp/127.0.0.1:7447] [--map NAME]... [--samples N]
+    mcsm serve [--listen tcp/127.0.0.1:7457] [--map NAME]... [--samples N]
                [--method joint|paper] [--record PATH.mcap] [--restore PATH.mcap]
                [--zenoh-config FILE]
     mcsm replay FILE.mcap
@@ -71,6 +71,11 @@ def _parser() -> argparse.ArgumentParser:
                    help="requests waiting for the worker before 'busy' errors")
     s.add_argument("--fsync", action="store_true",
                    help="fsync the recording before each ack (survives power loss; slow)")
+    s.add_argument("--id-ttl-s", type=float, default=600.0, metavar="S",
+                   help="remember each applied request id this long, so a retry (also after "
+                        "a --restore) is not applied twice (default 600)")
+    s.add_argument("--id-memory", type=int, default=100_000, metavar="K",
+                   help="remember at most this many request ids per map (default 100000)")
     s.add_argument("--log-level", default="INFO")
 
     r = sub.add_parser("replay", help="rebuild the maps of a recording and check its digests")
@@ -123,7 +128,7 @@ def _inflation(text: str) -> float | str:
 def serve(args: argparse.Namespace) -> int:
     import zenoh
 
-    from mcsm.connect import listen_endpoints, server_config
+    from mcsm.connect import listen_endpoints, security_warning, server_config
     from mcsm.recording import progress_bar
     from mcsm.server import Server, ServerOptions
 
@@ -146,7 +151,8 @@ def serve(args: argparse.Namespace) -> int:
                      "analysis": args.analysis, "shrink": args.shrink,
                      "inflation": args.inflation, "gain": args.gain},
         record=record, restore=args.restore, checkpoint_every=max(1, args.checkpoint_every),
-        queue_size=args.queue_size, fsync=args.fsync)
+        queue_size=args.queue_size, fsync=args.fsync, lru_size=max(1, args.id_memory),
+        id_ttl_s=max(0.0, args.id_ttl_s))
     try:
         for name in opts.maps:
             wire.map_keys(name, opts.prefix)
@@ -154,6 +160,9 @@ def serve(args: argparse.Namespace) -> int:
     except (McsmError, zenoh.ZError, OSError) as exc:
         print(f"mcsm serve: {exc}", file=sys.stderr)
         return 2
+    warning = security_warning(conf)
+    if warning is not None:
+        log.warning("%s", warning)
     try:
         session = zenoh.open(conf)
     except zenoh.ZError as exc:
