@@ -341,16 +341,42 @@ def cmd_watch(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _map_for(args: argparse.Namespace) -> tuple[Any, Any]:
-    """(target, closer): an in-process map or a connected client."""
+def _map_for(args: argparse.Namespace, **over: Any) -> tuple[Any, Any]:
+    """(target, closer): an in-process map or a connected client, as a ``MapTarget`` whose
+    frames live in ``--namespace`` (when given); refuses a namespace that has frames."""
+    from mcsm_client.players import MapTarget
+
+    prefix = _prefix(args)
     if args.in_process is not None:
         from mcsm import StochasticMap
 
         if args.in_process < 2:
             raise UsageError("--in-process N needs N >= 2")
-        return StochasticMap(args.in_process), None
-    c = _client(args)
-    return c, c
+        return MapTarget(StochasticMap(args.in_process), prefix), None
+    c = _client(args, **over)
+    try:
+        target = MapTarget(c, prefix)
+        taken = target.existing()
+    except BaseException:
+        c.close()
+        raise
+    if taken:
+        c.close()
+        where = f"namespace {prefix!r}" if prefix else "the root namespace (names without '/')"
+        raise UsageError(
+            f"map {c.map!r} already has {len(taken)} frames in {where} (e.g. {taken[0]!r}); "
+            f"{args.command} writes only into an empty namespace, so it would merge into "
+            "them: pass --namespace NAME (frames become NAME/...), or use another map")
+    return target, c
+
+
+def _prefix(args: argparse.Namespace) -> str:
+    from mcsm.core.names import is_frame_name
+
+    ns = args.namespace or ""
+    if ns and not is_frame_name(ns + "/x"):
+        raise UsageError(f"--namespace {ns!r}: expected frame-name segments joined by '/'")
+    return str(ns)
 
 
 def cmd_play(args: argparse.Namespace) -> int:
@@ -433,21 +459,30 @@ def cmd_multirobot(args: argparse.Namespace) -> int:
     if args.in_process is not None:
         from mcsm import StochasticMap
 
-        a_map: Any = StochasticMap(args.in_process)
-        b_map: Any = StochasticMap(args.in_process)
+        from mcsm_client.players import MapTarget
+
+        prefix = _prefix(args)
+        a_map = MapTarget(StochasticMap(args.in_process), prefix)
+        b_map = MapTarget(StochasticMap(args.in_process), prefix)
         res = run_multirobot(cfg, a_map, b_map, rng=rng, log=log)
     else:
-        with _client(args) as ca:
+        ca, closer_a = _map_for(args)
+        try:
             if args.connect_b or args.map_b:
                 over: dict[str, Any] = {}
                 if args.connect_b:
                     over["connect"] = args.connect_b
                 if args.map_b:
                     over["map"] = args.map_b
-                with _client(args, **over) as cb:
+                cb, closer_b = _map_for(args, **over)
+                try:
                     res = run_multirobot(cfg, ca, cb, rng=rng, log=log)
+                finally:
+                    closer_b.close()
             else:
                 res = run_multirobot(cfg, ca, rng=rng, log=log)
+        finally:
+            closer_a.close()
     obj = {"scores": [vars(s) for s in res.scores], "join": res.join_kind,
            "import": res.import_kind, "cross_loop_closures": res.cross_loop_closures,
            "elapsed_s": res.elapsed_s}

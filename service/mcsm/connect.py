@@ -79,7 +79,8 @@ def add_connection_args(parser: argparse.ArgumentParser,
         g.add_argument("--namespace", metavar="NS", **(d or {"default": None}),
                        help="write through the keys update/NS and remove/NS (a robot "
                             "identity's keys under the shipped access control; frames must "
-                            "be NS/...)")
+                            "be NS/...); sim, play and multirobot write NS/... frames (NS may "
+                            "be robot1/run2)")
     g.add_argument("--prefix", **(d or {"default": DEFAULT_PREFIX}),
                    help=f"key expression prefix (default {DEFAULT_PREFIX!r})")
     g.add_argument("--zenoh-config", metavar="FILE", **(d or {"default": None}),
@@ -105,7 +106,8 @@ def client_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     kw = {"map": args.map, "connect": args.connect, "zenoh_config": args.zenoh_config,
           "prefix": args.prefix}
     if getattr(args, "namespace", None):
-        kw["namespace"] = args.namespace
+        # "robot1/run2": the keys are robot1's; the frames of sim/play/multirobot robot1/run2/...
+        kw["namespace"] = str(args.namespace).split("/", 1)[0]
     return kw
 
 

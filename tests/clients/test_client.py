@@ -390,3 +390,33 @@ def test_cli_connection_flags_before_or_after_the_command(
     # no server for the map: exit 3 after the timeout, saying so
     assert main(["info", "--connect", ep, "--map", "nosuch", "--timeout-s", "0.5"]) == 3
     assert "no server serves map 'nosuch'" in capsys.readouterr().err
+
+
+def test_sim_play_multirobot_refuse_frames_that_exist(
+        served: tuple[str, Server], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A second `sim` into the same map is refused (exit 2, one line saying why) instead of
+    merging into the first run's frames; with --namespace it writes NS/... frames."""
+    from mcsm_client.cli import main
+
+    ep, _ = served
+    sim = ["sim", "--connect", ep, "--map", "other", "--iterations", "4", "--landmarks", "5",
+           "--json"]
+    assert main(sim) == 0
+    capsys.readouterr()
+    assert main(sim) == 2
+    err = capsys.readouterr().err
+    assert "already has" in err and "--namespace" in err and err.count("\n") == 1
+    assert main([*sim, "--namespace", "run2"]) == 0
+    assert main([*sim, "--namespace", "run2"]) == 2
+    assert main(["multirobot", "--connect", ep, "--map", "other", "--landmarks", "5"]) == 2
+    capsys.readouterr()
+    with MapClient(connect=ep, map="other") as c:
+        frames = c.info().frames
+    assert any(f.startswith("run2/x") for f in frames)
+    assert all(f.startswith("run2/") for f in frames if "/" in f)
+    g2o = tmp_path / "tiny.g2o"
+    g2o.write_text("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\n"
+                   "EDGE_SE2 0 1 1 0 0 100 0 0 100 0 1000\n")
+    assert main(["play", str(g2o), "--connect", ep, "--map", "other", "--no-progress"]) == 2
+    assert main(["play", str(g2o), "--connect", ep, "--map", "other", "--no-progress",
+                 "--namespace", "run3"]) == 0
