@@ -170,3 +170,57 @@ def test_client_streams_across_sigkill_and_restore(tmp_path: Path,
     # the longest call is the one that waited for the restart, within its timeout
     assert max(durations) < timeout_s
     assert d2.stop(signal.SIGTERM) == 0, d2.log_text()
+
+
+def test_id_memory_is_bounded_by_time_and_count() -> None:
+    """Ids are forgotten after id_ttl_s (receive times, so a replayed memory ages the same
+    way) and beyond lru_size; a remembered id with another request raises RequestIdReused."""
+    from mcsm.recording import DEFAULT_ID_TTL_S, DEFAULT_LRU, MapState, decode_input
+
+    assert DEFAULT_ID_TTL_S >= 300 and DEFAULT_LRU >= 100_000
+    rng = np.random.default_rng(9105)
+    st = MapState("m", StochasticMap(N), lru_size=3, id_ttl_s=60.0)
+
+    def up(rid: str, b: str) -> Any:
+        x = noisy_at(rng, N, [1, 0, 0])
+        return decode_input("update", wire.encode_update(rid, "w", b, x), N)
+
+    t0 = 1_000_000_000_000
+    reqs = {f"i{k}": up(f"i{k}", f"f{k}") for k in range(4)}
+    for k, (rid, req) in enumerate(reqs.items()):
+        st.apply("update", req, time_ns=t0 + k * 10**9)
+    fp = {rid: wire.request_fingerprint("update", r) for rid, r in reqs.items()}
+    now = t0 + 4 * 10**9
+    assert st.lookup("i0", fp["i0"], now) is None  # beyond the count of 3
+    dup = st.lookup("i1", fp["i1"], now)
+    assert dup is not None and dup.duplicate and dup.seq == 2
+    try:
+        st.lookup("i1", fp["i2"], now)
+    except RequestIdReused:
+        pass
+    else:
+        raise AssertionError("another request under a remembered id was not refused")
+    assert st.lookup("i3", fp["i3"], t0 + 3 * 10**9 + 59 * 10**9) is not None
+    assert st.lookup("i3", fp["i3"], t0 + 3 * 10**9 + 61 * 10**9) is None  # older than 60 s
+
+
+def test_replies_and_events_are_labelled_msgpack(tmp_path: Path,
+                                                 daemons: list[Daemon]) -> None:
+    d = start_daemon(tmp_path, "--samples", str(N))
+    daemons.append(d)
+    rng = np.random.default_rng(9106)
+    with MapClient(connect=d.endpoint, timeout_s=10) as c:
+        with c.session.declare_subscriber(c.keys.events) as sub:
+            ok = list(c.session.get(c.keys.info, payload=wire.encode_info("e1"), timeout=5))
+            err = list(c.session.get(c.keys.query, payload=b"junk", timeout=5))
+            c.update("a", "b", noisy_at(rng, N, [1, 0, 0]))
+            sample = None
+            deadline = time.monotonic() + 10
+            while sample is None and time.monotonic() < deadline:
+                sample = sub.try_recv()
+                if sample is None:
+                    time.sleep(0.01)  # polling the subscriber's channel
+    assert sample is not None
+    assert len(ok) == 1 and str(ok[0].ok.encoding) == wire.ENCODING == "application/msgpack"
+    assert len(err) == 1 and str(err[0].err.encoding) == "application/msgpack"
+    assert str(sample.encoding) == "application/msgpack"
