@@ -187,7 +187,7 @@ def test_id_memory_is_bounded_by_time_and_count() -> None:
 
     t0 = 1_000_000_000_000
     reqs = {f"i{k}": up(f"i{k}", f"f{k}") for k in range(4)}
-    for k, (rid, req) in enumerate(reqs.items()):
+    for k, req in enumerate(reqs.values()):
         st.apply("update", req, time_ns=t0 + k * 10**9)
     fp = {rid: wire.request_fingerprint("update", r) for rid, r in reqs.items()}
     now = t0 + 4 * 10**9
