@@ -231,7 +231,7 @@ class MapClient:
                       "silent": "no reply at all"}[state], min(delay, left), left, t)
             time.sleep(min(delay, left))
             delay = min(2 * delay, BACKOFF_MAX_S)
-        log.warning("%s: gave up after %.3g s (%d attempts, last: %s)", what, t, attempt, state)
+        log.info("%s: gave up after %.3g s (%d attempts, last: %s)", what, t, attempt, state)
         if state == "none":
             raise NoServer(self.map, self.keys.alive_any, t)
         if state == "silent":
