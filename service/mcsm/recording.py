@@ -121,12 +121,16 @@ class MapState:
                now_ns: int | None = None) -> wire.Ack | None:
         """The original ack of an already applied request id (flagged duplicate), or None.
 
+        With ``now_ns`` (the new request's receive time), ids older than ``id_ttl_s`` are
+        forgotten first; without it only the count bound applies.
+
         Raises
         ------
         RequestIdReused
             If the id is remembered for a request with another ``fingerprint``.
         """
-        self._forget(time.time_ns() if now_ns is None else now_ns)
+        if now_ns is not None:
+            self._forget(now_ns)
         hit = self._acks.get(request_id)
         if hit is None:
             return None

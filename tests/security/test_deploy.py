@@ -13,6 +13,7 @@ import json
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -32,7 +33,7 @@ from tests.wire_cases import CASES
 
 N = 16
 REPO = Path(__file__).resolve().parents[2]
-MAPS = ("ns", "view", "imp", "imp2", "wild", "rogue", "table")
+MAPS = ("ns", "view", "imp", "imp2", "wild", "rogue", "table", "load")
 DENIED_S = 1.0  # timeout of calls the access control denies (they fail after it, not before)
 
 
@@ -292,3 +293,81 @@ def test_denied_call_names_the_cause(dep: Deployment) -> None:
             raise AssertionError(f"wrong error: {exc!r}") from None
         else:
             raise AssertionError("a viewer's remove was accepted")
+
+
+def test_concurrent_robots_with_authentication(dep: Deployment) -> None:
+    """The load test's shape with authentication on: robots stream into their own namespaces
+    at once, every op gets a distinct seq, the recording replays to the live digest."""
+    from mcsm.recording import replay
+
+    per_robot = 8
+    acks: list[wire.Ack] = []
+    errors: list[Exception] = []
+
+    def run(ident: str, seed: int) -> None:
+        rng = np.random.default_rng(seed)
+        try:
+            with dep.client(ident, "load", namespace=ident, timeout_s=20) as c:
+                for i in range(per_robot):
+                    acks.append(c.update(f"{ident}/p{i}", f"{ident}/p{i + 1}",
+                                         noisy_at(rng, N, [1, 0, 0])))
+        except McsmError as exc:
+            errors.append(exc)
+
+    threads = [threading.Thread(target=run, args=(r, 1210 + k))
+               for k, r in enumerate(("robot1", "robot2"))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=120)
+    assert not errors and not any(t.is_alive() for t in threads)
+    assert sorted(a.seq for a in acks) == list(range(1, 2 * per_robot + 1))
+    with dep.client("viewer", "load") as v:
+        info = v.info()
+    rep = replay(dep.daemon.record)
+    assert rep.identical and rep.states["load"].map.state_digest() == info.digest
+
+
+def test_robot_streams_across_sigkill_and_restore_with_authentication(
+        secrets_dir: Path, tmp_path: Path, daemons: list[Daemon]) -> None:
+    """A robot (usrpwd config) streaming while its server is SIGKILLed and restarted with
+    --restore on the same port: every call succeeds, nothing lost or doubled."""
+
+    conf = secrets_dir / "usrpwd" / "server.json5"
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    d1 = start_daemon(tmp_path, "--zenoh-config", str(conf), "--samples", str(N), name="first",
+                      listen_on=ep)
+    daemons.append(d1)
+    rng = np.random.default_rng(1207)
+    ops = [(f"robot1/p{i}", f"robot1/p{i + 1}", noisy_at(rng, N, [1, 0, 0])) for i in range(60)]
+    acks: list[wire.Ack] = []
+    errors: list[Exception] = []
+    c = MapClient(connect=ep, zenoh_config=secrets_dir / "usrpwd" / "robot1.json5",
+                  namespace="robot1", timeout_s=30)
+
+    def stream() -> None:
+        for i, (a, b, x) in enumerate(ops):
+            try:
+                acks.append(c.update(a, b, x, request_id=f"k{i}"))
+            except McsmError as exc:
+                errors.append(exc)
+                return
+
+    try:
+        t = threading.Thread(target=stream)
+        t.start()
+        deadline = time.monotonic() + 30
+        while len(acks) < 10 and time.monotonic() < deadline and t.is_alive():
+            time.sleep(0.01)  # polling the ack count
+        d1.proc.send_signal(signal.SIGKILL)
+        d1.proc.wait(timeout=10)
+        d2 = start_daemon(tmp_path, "--zenoh-config", str(conf), "--restore", str(d1.record),
+                          name="second", listen_on=ep)
+        daemons.append(d2)
+        t.join(timeout=120)
+        assert not t.is_alive() and not errors, errors
+        assert [a.seq for a in acks] == list(range(1, len(ops) + 1))
+        assert c.info().seq == len(ops)
+    finally:
+        c.close()
+    assert d2.stop(signal.SIGTERM) == 0, d2.log_text()
