@@ -90,6 +90,10 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from mcsm.connect import flags_after_command
+
+    # `mcsm --listen X serve` works like `mcsm serve --listen X`
+    argv = flags_after_command(sys.argv[1:] if argv is None else list(argv), "serve")
     args = _parser().parse_args(argv)
     try:
         if args.command == "serve":

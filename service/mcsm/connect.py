@@ -101,6 +101,34 @@ def fill_connection_defaults(args: argparse.Namespace,
             setattr(args, k, v)
 
 
+SERVER_FLAGS = ("--listen", "--map", "--prefix", "--zenoh-config")
+
+
+def flags_after_command(argv: list[str], command: str,
+                        flags: tuple[str, ...] = SERVER_FLAGS) -> list[str]:
+    """``argv`` with the given value flags written before ``command`` moved after it, so
+    ``mcsm --listen X serve`` parses like ``mcsm serve --listen X``. Anything else is left
+    where it is (argparse then reports it as usual)."""
+    if command not in argv:
+        return list(argv)
+    at = argv.index(command)
+    moved: list[str] = []
+    head: list[str] = []
+    i = 0
+    while i < at:
+        tok = argv[i]
+        name = tok.split("=", 1)[0]
+        if name in flags and "=" in tok:
+            moved.append(tok)
+        elif name in flags and i + 1 < at:
+            moved += [tok, argv[i + 1]]
+            i += 1
+        else:
+            head.append(tok)
+        i += 1
+    return [*head, command, *moved, *argv[at + 1:]]
+
+
 def client_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     """``MapClient`` keyword arguments from flags added by :func:`add_connection_args`."""
     kw = {"map": args.map, "connect": args.connect, "zenoh_config": args.zenoh_config,

@@ -420,3 +420,15 @@ def test_sim_play_multirobot_refuse_frames_that_exist(
     assert main(["play", str(g2o), "--connect", ep, "--map", "other", "--no-progress"]) == 2
     assert main(["play", str(g2o), "--connect", ep, "--map", "other", "--no-progress",
                  "--namespace", "run3"]) == 0
+
+
+def test_server_flags_before_or_after_serve() -> None:
+    from mcsm.connect import flags_after_command
+
+    assert flags_after_command(["--listen", "tcp/127.0.0.1:1", "serve", "--samples", "5"],
+                               "serve") == ["serve", "--listen", "tcp/127.0.0.1:1",
+                                            "--samples", "5"]
+    assert flags_after_command(["--zenoh-config=x.json5", "--map", "a", "serve"], "serve") == [
+        "serve", "--zenoh-config=x.json5", "--map", "a"]
+    assert flags_after_command(["replay", "f.mcap"], "serve") == ["replay", "f.mcap"]
+    assert flags_after_command(["-v", "serve"], "serve") == ["-v", "serve"]
