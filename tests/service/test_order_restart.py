@@ -167,8 +167,8 @@ def test_client_streams_across_sigkill_and_restore(tmp_path: Path,
         for a, b, x in ops:
             local.update(a, b, x)
         assert info.digest == local.state_digest()
-    # the longest call is the one that waited for the restart, within its timeout
-    assert max(durations) < timeout_s
+    # the longest call is the one that waited through the restart, within its timeout
+    assert 0.5 < max(durations) < timeout_s
     assert d2.stop(signal.SIGTERM) == 0, d2.log_text()
 
 
