@@ -432,3 +432,26 @@ def test_server_flags_before_or_after_serve() -> None:
         "serve", "--zenoh-config=x.json5", "--map", "a"]
     assert flags_after_command(["replay", "f.mcap"], "serve") == ["replay", "f.mcap"]
     assert flags_after_command(["-v", "serve"], "serve") == ["-v", "serve"]
+
+
+def test_slow_server_gives_timeout_after_the_full_deadline() -> None:
+    """A live server that holds every request past the deadline: plain Timeout (not NoServer,
+    not NoPermittedServer), raised after the call's own timeout, naming it."""
+    ep = free_endpoint()
+    srv = zenoh.open(server_config(ep))
+    held: list[zenoh.Query] = []
+    qa = srv.declare_queryable("mcsm/default/**", held.append)
+    tok = srv.liveliness().declare_token(f"mcsm/default/alive/{srv.zid()}")
+    try:
+        with MapClient(connect=ep, timeout_s=1.5) as c:
+            t0 = time.monotonic()
+            with pytest.raises(Timeout, match="no reply within 1.5 s") as exc:
+                c.info()
+            assert 1.5 <= time.monotonic() - t0 < 6.0
+            assert type(exc.value) is Timeout and "alive but did not answer" in str(exc.value)
+    finally:
+        for q in held:
+            q.drop()
+        tok.undeclare()
+        qa.undeclare()
+        srv.close()
