@@ -139,8 +139,10 @@ class MapState:
             raise RequestIdReused(request_id, ack.seq)
         return replace(ack, duplicate=True)
 
-    def apply(self, op: str, req: Any, *, time_ns: int | None = None) -> wire.Ack:
+    def apply(self, op: str, req: Any, *, time_ns: int | None = None,
+              fingerprint: str | None = None) -> wire.Ack:
         """Apply one decoded input received at ``time_ns``; returns its ack (seq ``seq + 1``).
+        ``fingerprint`` is ``wire.request_fingerprint(op, req)`` if the caller has it.
 
         Raises
         ------
@@ -164,7 +166,8 @@ class MapState:
         self.seq = ack.seq
         t_ns = time.time_ns() if time_ns is None else int(time_ns)
         self._acks.pop(req.request_id, None)
-        self._acks[req.request_id] = (ack, wire.request_fingerprint(op, req), t_ns)
+        fp = fingerprint if fingerprint is not None else wire.request_fingerprint(op, req)
+        self._acks[req.request_id] = (ack, fp, t_ns)
         self._forget(t_ns)
         return ack
 

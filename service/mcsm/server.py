@@ -322,9 +322,9 @@ class Server:
 
     def _apply(self, item: _Item) -> None:
         st, req = item.state, item.request
+        fingerprint = wire.request_fingerprint(item.op, req)
         try:
-            dup = st.lookup(req.request_id, wire.request_fingerprint(item.op, req),
-                            item.recv_ns)
+            dup = st.lookup(req.request_id, fingerprint, item.recv_ns)
         except McsmError as exc:  # RequestIdReused: an id sent again with another request
             self._reject(st, item.query, exc, req.request_id, item.op)
             return
@@ -338,7 +338,7 @@ class Server:
                     and namespace_of(req.b) != item.namespace and not _has(st, req.b):
                 raise Forbidden(item.key, req.b, item.namespace,
                                 "a new frame in another namespace")
-            ack = st.apply(item.op, req, time_ns=item.recv_ns)
+            ack = st.apply(item.op, req, time_ns=item.recv_ns, fingerprint=fingerprint)
         except McsmError as exc:
             self._reject(st, item.query, exc, req.request_id, item.op)
             return
