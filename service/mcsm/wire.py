@@ -722,7 +722,7 @@ def request_fingerprint(op: str, req: Any) -> str:
 
 def _bytes_view(a: Samples) -> memoryview:
     """The little-endian float64 bytes of ``a`` without a copy when it is already so."""
-    return memoryview(np.ascontiguousarray(a, dtype=F8)).cast("B")
+    return np.ascontiguousarray(a, dtype=F8).data.cast("B")
 
 
 def encode_query_reply(r: QueryReply) -> bytes:
