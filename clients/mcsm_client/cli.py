@@ -16,9 +16,12 @@ Commands (each takes the connection flags ``--connect``, ``--map``, ``--prefix``
     mcsm-client multirobot [--connect-b ENDPOINT | --map-b NAME]
 
 ``play``, ``sim`` and ``multirobot`` also run without a server with ``--in-process N`` (an
-in-process map of N samples). ``--cov`` gives a full covariance (row-major) instead of
-``--sigma``. Exit codes: 0 success, 1 the server refused the request (its error is printed),
-2 bad command line or input file, 3 no server answered in time, 130 interrupted.
+in-process map of N samples); they write only into a frame namespace that has no frames yet
+(``--namespace NS``: frames ``NS/...``). ``--cov`` gives a full covariance (row-major) instead
+of ``--sigma``. Exit codes: 0 success, 1 the server refused the request (its error is
+printed), 2 bad command line or input file (a malformed ``--connect`` too), 3 no answer within
+``--timeout-s`` (no live server, no permitted server for the key, or a slow server: the
+message says which), 130 interrupted.
 """
 
 from __future__ import annotations
@@ -64,7 +67,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog="mcsm-client",
         description="Client of the Monte Carlo stochastic map server (mcsm serve).",
         epilog="Exit codes: 0 ok, 1 refused by the server, 2 usage or input error, "
-               "3 no reply in time, 130 interrupted.")
+               "3 no answer in time (no server, access denied, or slow), 130 interrupted. "
+               "Connection flags go before or after the command.")
     _add_common(p)
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
