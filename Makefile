@@ -11,8 +11,9 @@ help:
 	@echo "make test   lint, type-check and run the whole test suite"
 	@echo "make bench  benchmarks and experiments (figures into experiments/results/)"
 
-# Re-install only when pyproject.toml changes; a second call costs nothing.
-$(STAMP): pyproject.toml
+# Re-install (and rebuild the compiled kernel) only when the packaging or the kernel source
+# changes; a second call costs nothing.
+$(STAMP): pyproject.toml setup.py service/mcsm/core/_kernel.c
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e '.[test,eval]'

@@ -1,15 +1,19 @@
-"""Update and query cost of the stochastic map vs frames M and samples N (PAPER §4, Fig. 6).
+"""Update, add-frame and query cost of the stochastic map vs frames M and samples N (PAPER §4,
+Fig. 6): the compiled kernel ("new") and the numpy core before it ("old",
+``tests/core/numpy_reference.py``) side by side in one run.
 
-Protocol: grow a 3-D map frame by frame (odometry-like ATs); at the checkpoints M = 25, 50,
-100, 200, 400 apply ``--updates`` random case II updates between existing frames (the observation
-is the current relation with its samples permuted, i.e. an independent sample set with the same
-marginal) and time each one. ``--full`` instead applies 10 updates at *every* iteration as in the
-paper (slow at N = 5000) and times those at the checkpoints. Each update is also expressed as a
-multiple of one streaming pass (``np.copyto``) over the same ``(M, N, 7)`` array, measured right
-before it. Prints a table, the fitted exponent of update time in M (M >= 50), query latency,
-memory, and one JSON line per configuration on stderr.
+Protocol: grow a 3-D map frame by frame (odometry-like ATs) with the kernel; at each checkpoint
+M copy its exact state into the old implementation, then apply ``--updates`` random case II
+updates between existing frames (the observation is the current relation with its samples
+permuted: an independent sample set with the same marginal) on each and time them. Each update
+is also expressed in *passes*: its time over one streaming copy (``np.copyto``) of the same
+``(M, N, 7)`` array, timed right before it, so figures taken at different hours of a shared
+machine compare. Rows: new (default threads), new on one thread, new with the endpoint gain,
+old. Then: adding a frame at each checkpoint (median of 20), queries (median of 200), the
+fitted exponent of update time in M (M >= 50), the paper method at M = 400, memory.
 
-Run: ``.venv/bin/python benchmarks/bench_core.py [--sizes 200 1000 5000] [--quick]``.
+Run: ``.venv/bin/python benchmarks/bench_core.py [--sizes 200 1000 5000] [--max-frames 1600]
+[--quick]``. Output used in README: ``benchmarks/results/bench_core.txt``.
 """
 
 from __future__ import annotations
@@ -20,24 +24,31 @@ import os
 import sys
 import time
 import tracemalloc
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 from mcsm import StochasticMap
-from mcsm.core.quat import qexp
+from mcsm.core import kernel
+from mcsm_client.sampling import pose_from_planar, sample_pose
 
-CHECKPOINTS = (25, 50, 100, 200, 400)
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root
+from tests.core import numpy_reference as old  # noqa: E402  (the core before the kernel)
+
+CHECKPOINTS = (25, 50, 100, 200, 400, 800, 1600)
+NOISE_COV = np.diag([0.02**2] * 3 + [0.01**2] * 3)  # 2 cm, 0.6 deg per axis
 
 
 def random_at(rng: np.random.Generator, n: int) -> np.ndarray:
-    """A 3-D AT: 1 m forward-ish step, a few degrees of turn, cm/deg noise."""
-    x = np.empty((n, 7))
-    x[:, :3] = rng.normal([1.0, 0.2, 0.05], 0.05, 3) + 0.02 * rng.standard_normal((n, 3))
-    x[:, 3:] = qexp(rng.normal([0.01, 0.02, 0.15], 0.01, 3) + 0.01 * rng.standard_normal((n, 3)))
-    return x
+    """A 3-D AT: 1 m forward-ish step, a few degrees of turn, cm/deg noise in all six axes."""
+    mean = pose_from_planar(rng.normal([1.0, 0.2, 0.15], [0.05, 0.05, 0.01]))
+    mean[2] = rng.normal(0.05, 0.05)
+    return sample_pose(mean, NOISE_COV, n_samples=n, rng=rng)
 
 
-def copy_pass_s(edges: np.ndarray, repeats: int = 5) -> float:
+def copy_pass_s(edges: np.ndarray, repeats: int = 3) -> float:
     dst = np.empty_like(edges)
+    np.copyto(dst, edges)
     ts = []
     for _ in range(repeats):
         t0 = time.perf_counter_ns()
@@ -46,105 +57,169 @@ def copy_pass_s(edges: np.ndarray, repeats: int = 5) -> float:
     return float(np.median(ts)) * 1e-9
 
 
-def timed_updates(m: StochasticMap, frames: list[str], rng: np.random.Generator,
-                  count: int) -> tuple[list[float], list[float]]:
+def old_copy(m: StochasticMap, **opts: Any) -> old.StochasticMap:
+    """The old implementation holding exactly ``m``'s state."""
+    r = old.StochasticMap(m.n_samples, **opts)
+    snap = m.snapshot()
+    r._next_id = snap["next_id"]
+    r._order = {f: None for f in snap["order"]}
+    for c in snap["components"]:
+        comp = old._Component(list(c["frames"]), np.array(c["is_point"], dtype=bool),
+                              np.array(c["edges"]))
+        r._comps[c["id"]] = comp
+        for f in comp.frames:
+            r._where[f] = c["id"]
+    return r
+
+
+def timed_updates(m: Any, frames: list[str], rng: np.random.Generator, count: int,
+                  edges: np.ndarray) -> tuple[float, float]:
+    """(median milliseconds, median passes) of ``count`` random loop closures."""
     times, passes = [], []
     for _ in range(count):
         a, b = rng.choice(len(frames), 2, replace=False)
         obs = m.query(frames[a], frames[b])[rng.permutation(m.n_samples)]
-        cp = copy_pass_s(np.asarray(m.edges(frames[0])), 3)
+        cp = copy_pass_s(edges)
         t0 = time.perf_counter_ns()
         m.update(frames[a], frames[b], obs)
         dt = (time.perf_counter_ns() - t0) * 1e-9
         times.append(dt)
         passes.append(dt / cp)
-    return times, passes
+    return 1e3 * float(np.median(times)), float(np.median(passes))
 
 
-def bench(n: int, method: str, updates: int, full: bool, max_m: int,
-          seed: int = 6) -> list[dict[str, object]]:
+def bench(n: int, updates: int, max_m: int, old_max_m: int, seed: int = 6
+          ) -> list[dict[str, Any]]:
     rng = np.random.default_rng(seed)
-    m = StochasticMap(n, method=method)
+    variants: dict[str, dict[str, Any]] = {
+        "new": {}, "new-1thread": {"threads": 1}, "new-endpoints": {"gain": "endpoints"}}
+    maps = {name: StochasticMap(n, **o) for name, o in variants.items()}
     frames = ["f0"]
-    rows: list[dict[str, object]] = []
-    # warm-up on a throw-away map
-    w = StochasticMap(n, method=method)
-    for k in range(5):
-        w.update(f"w{k}", f"w{k + 1}", random_at(rng, n))
-    timed_updates(w, [f"w{k}" for k in range(6)], rng, 3)
-    for k in range(1, max_m):
-        m.update(frames[-1], f"f{k}", random_at(rng, n))
+    rows: list[dict[str, Any]] = []
+    for k in range(1, max_m + 1):
+        x = random_at(rng, n)
+        for mp in maps.values():
+            mp.update(frames[-1], f"f{k}", x)
         frames.append(f"f{k}")
-        if full and len(frames) not in CHECKPOINTS:
-            timed_updates(m, frames, rng, 10)
-        if len(frames) in CHECKPOINTS:
-            times, passes = timed_updates(m, frames, rng, updates)
-            qt = []
-            for _ in range(200):
-                a, b = rng.choice(len(frames), 2, replace=False)
+        if len(frames) not in CHECKPOINTS:
+            continue
+        m_frames = len(frames)
+        edges = maps["new"].edges("f0")  # (M, N, 7): the copy pass's array
+        row: dict[str, Any] = {"bench": "core_update", "n": n, "m": m_frames,
+                               "edges_mib": edges.nbytes / 2**20}
+        for name, mp in maps.items():
+            row[f"{name}_ms"], row[f"{name}_passes"] = timed_updates(
+                mp, frames, np.random.default_rng(k), updates, edges)
+        if m_frames <= old_max_m:
+            o = old_copy(maps["new"])
+            row["old_ms"], row["old_passes"] = timed_updates(
+                o, frames, np.random.default_rng(k), updates, edges)
+            o_add = old_copy(maps["new"])
+        qt = []
+        for _ in range(200):
+            a, b = rng.choice(m_frames, 2, replace=False)
+            t0 = time.perf_counter_ns()
+            maps["new"].query(frames[a], frames[b])
+            qt.append(time.perf_counter_ns() - t0)
+        row["query_us"] = 1e-3 * float(np.median(qt))
+        # adding a frame to this component: new (buffer with spare capacity) and old (a copy)
+        add_new, add_old = [], []
+        scratch = StochasticMap.from_snapshot(maps["new"].snapshot())
+        for j in range(20):
+            x = random_at(rng, n)
+            t0 = time.perf_counter_ns()
+            scratch.update(frames[-1] if j == 0 else f"g{j - 1}", f"g{j}", x)
+            add_new.append(time.perf_counter_ns() - t0)
+            if m_frames <= old_max_m:
                 t0 = time.perf_counter_ns()
-                m.query(frames[a], frames[b])
-                qt.append(time.perf_counter_ns() - t0)
-            row = {"bench": "core_update", "n": n, "m": len(frames), "method": method,
-                   "space": m.space, "analysis": m.analysis,
-                   "update_ms_median": 1e3 * float(np.median(times)),
-                   "update_ms_p90": 1e3 * float(np.percentile(times, 90)),
-                   "passes_median": float(np.median(passes)),
-                   "query_us_median": 1e-3 * float(np.median(qt)),
-                   "edges_mib": np.asarray(m.edges("f0")).nbytes / 2**20,
-                   "updates_timed": len(times)}
-            rows.append(row)
-            print(json.dumps(row), file=sys.stderr)
+                o_add.update(frames[-1] if j == 0 else f"g{j - 1}", f"g{j}", x)
+                add_old.append(time.perf_counter_ns() - t0)
+        row["add_new_ms"] = 1e-6 * float(np.median(add_new))
+        if add_old:
+            row["add_old_ms"] = 1e-6 * float(np.median(add_old))
+        del scratch
+        rows.append(row)
+        print(json.dumps(row), file=sys.stderr, flush=True)
+        print(_line(row), flush=True)
     return rows
 
 
-def peak_update_mib(n: int, method: str, m_frames: int) -> float:
+def _fmt(row: dict[str, Any], key: str, spec: str) -> str:
+    return format(row[key], spec) if key in row else "-"
+
+
+def _line(r: dict[str, Any]) -> str:
+    return (f"{r['n']:5d} {r['m']:5d} | {r['new_ms']:8.2f} {r['new_passes']:5.1f} | "
+            f"{r['new-1thread_ms']:8.2f} {r['new-1thread_passes']:5.1f} | "
+            f"{r['new-endpoints_ms']:8.2f} {r['new-endpoints_passes']:5.1f} | "
+            f"{_fmt(r, 'old_ms', '8.2f'):>8} {_fmt(r, 'old_passes', '5.1f'):>5} | "
+            f"{_fmt(r, 'add_new_ms', '.3f'):>6} {_fmt(r, 'add_old_ms', '.2f'):>6} | "
+            f"{r['query_us']:7.1f} {r['edges_mib']:8.1f}")
+
+
+def exponent(rows: list[dict[str, Any]], key: str) -> float | None:
+    pts = [(r["m"], r[key]) for r in rows if r["m"] >= 50 and key in r]
+    if len(pts) < 2:
+        return None
+    ms, ts = np.log([p[0] for p in pts]), np.log([p[1] for p in pts])
+    return float(np.polyfit(ms, ts, 1)[0])
+
+
+def paper_at(n: int, m_frames: int, updates: int) -> tuple[float, float]:
+    rng = np.random.default_rng(9)
+    m = StochasticMap(n, method="paper")
+    frames = [f"f{k}" for k in range(m_frames)]
+    for k in range(m_frames - 1):
+        m.update(frames[k], frames[k + 1], random_at(rng, n))
+    return timed_updates(m, frames, rng, updates, m.edges("f0"))
+
+
+def peak_update_mib(n: int, m_frames: int, method: str) -> float:
     rng = np.random.default_rng(7)
     m = StochasticMap(n, method=method)
     for k in range(m_frames - 1):
         m.update(f"f{k}", f"f{k + 1}", random_at(rng, n))
-    obs = m.query("f3", f"f{m_frames - 2}")[rng.permutation(n)]
-    tracemalloc.start()
-    m.update("f3", f"f{m_frames - 2}", obs)
-    peak = tracemalloc.get_traced_memory()[1]
-    tracemalloc.stop()
+    for _ in range(2):  # the second update reuses the first one's spare buffer
+        obs = m.query("f3", f"f{m_frames - 2}")[rng.permutation(n)]
+        tracemalloc.start()
+        m.update("f3", f"f{m_frames - 2}", obs)
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
     return peak / 2**20
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--sizes", type=int, nargs="+", default=[200, 1000, 5000])
-    p.add_argument("--methods", nargs="+", default=["joint", "paper"])
-    p.add_argument("--updates", type=int, default=15, help="timed updates per checkpoint")
-    p.add_argument("--full", action="store_true", help="10 updates at every iteration (paper)")
-    p.add_argument("--quick", action="store_true", help="N = 200, 1000 only, 9 updates")
-    p.add_argument("--max-frames", type=int, default=400)
+    p.add_argument("--updates", type=int, default=9, help="timed updates per checkpoint")
+    p.add_argument("--max-frames", type=int, default=1600)
+    p.add_argument("--old-max-frames", type=int, default=1600,
+                   help="largest M timed with the old implementation (slow at N = 5000)")
+    p.add_argument("--quick", action="store_true", help="N = 200, 1000; M <= 400; 5 updates")
     a = p.parse_args()
     if a.quick:
-        a.sizes, a.updates = [s for s in a.sizes if s <= 1000], 9
-    print(f"numpy {np.__version__}, {os.cpu_count()} cores, protocol: "
-          f"{'full (10 updates/iteration)' if a.full else f'{a.updates} updates per checkpoint'}")
-    print(f"{'method':7} {'N':>5} {'M':>4} {'update ms':>10} {'p90':>7} {'passes':>7} "
-          f"{'query µs':>9} {'edges MiB':>9}")
-    all_rows = []
-    for method in a.methods:
-        for n in a.sizes:
-            rows = bench(n, method, a.updates, a.full, a.max_frames)
-            all_rows += rows
-            for r in rows:
-                print(f"{method:7} {n:5d} {r['m']:4d} {r['update_ms_median']:10.2f} "
-                      f"{r['update_ms_p90']:7.2f} {r['passes_median']:7.1f} "
-                      f"{r['query_us_median']:9.1f} {r['edges_mib']:9.1f}", flush=True)
-            ms = np.array([r["m"] for r in rows if int(r["m"]) >= 50], dtype=float)  # type: ignore[call-overload]
-            ts = np.array([r["update_ms_median"] for r in rows if int(r["m"]) >= 50], dtype=float)  # type: ignore[call-overload]
-            if len(ms) >= 2:
-                slope = np.polyfit(np.log(ms), np.log(ts), 1)[0]
-                print(f"{method:7} {n:5d}  fitted exponent of update time in M (M>=50): "
-                      f"{slope:.2f}")
-    n_peak = 1000 if 1000 in a.sizes else a.sizes[0]
-    for method in a.methods:
-        print(f"tracemalloc peak of one {method} update, N={n_peak}, M={a.max_frames}: "
-              f"{peak_update_mib(n_peak, method, a.max_frames):.1f} MiB")
+        a.sizes, a.updates, a.max_frames = [s for s in a.sizes if s <= 1000], 5, 400
+    print(f"numpy {np.__version__}, {os.cpu_count()} cores, kernel {Path(kernel.LIBRARY).name}, "
+          f"{a.updates} updates per checkpoint, load average {os.getloadavg()[0]:.1f}")
+    print("update: median ms and passes (update time / one np.copyto of the (M, N, 7) edges)")
+    print(f"{'N':>5} {'M':>5} | {'new':>8} {'pass':>5} | {'1 thread':>8} {'pass':>5} | "
+          f"{'endpoint':>8} {'pass':>5} | {'old':>8} {'pass':>5} | {'add ms':>6} {'old':>6} | "
+          f"{'query µs':>7} {'MiB':>8}")
+    for n in a.sizes:
+        rows = bench(n, a.updates, a.max_frames, a.old_max_frames)
+        exps = {k: exponent(rows, f"{k}_ms") for k in ("new", "new-1thread", "new-endpoints",
+                                                         "old")}
+        print(f"{n:5d}  exponent of update time in M (M >= 50): " + ", ".join(
+            f"{k} {v:.2f}" for k, v in exps.items() if v is not None), flush=True)
+    n_paper = 1000 if 1000 in a.sizes else a.sizes[0]
+    ms, passes = paper_at(n_paper, 400, a.updates)
+    print(f"paper method (tangent chart, kernel), N = {n_paper}, M = 400: {ms:.1f} ms, "
+          f"{passes:.1f} passes")
+    for method in ("joint", "paper"):
+        print(f"tracemalloc peak of one {method} update, N = {n_paper}, M = 400: "
+              f"{peak_update_mib(n_paper, 400, method):.1f} MiB "
+              f"(edges {400 * n_paper * 7 * 8 / 2**20:.1f} MiB)")
+    print(f"load average at the end {os.getloadavg()[0]:.1f}")
 
 
 if __name__ == "__main__":

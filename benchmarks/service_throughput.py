@@ -38,20 +38,21 @@ from typing import Any
 
 import numpy as np
 from mcsm import StochasticMap
-from mcsm.core.quat import qexp
 from mcsm.recording import MapState, decode_input, replay
 from mcsm_client.client import MapClient
+from mcsm_client.sampling import pose_from_planar, sample_pose
 
 Op = tuple[str, str, str, np.ndarray | None]
 
 
+NOISE_COV = np.diag([0.05**2] * 3 + [0.01**2] * 3)  # 5 cm, 0.6 deg per axis
+
+
 def at(rng: np.random.Generator, n: int, t: list[float], yaw: float = 0.0) -> np.ndarray:
-    x = np.empty((n, 7))
-    x[:, :3] = np.asarray(t) + 0.05 * rng.standard_normal((n, 3))
-    w = 0.01 * rng.standard_normal((n, 3))
-    w[:, 2] += yaw
-    x[:, 3:] = qexp(w)
-    return x
+    """An AT of N samples around translation ``t`` (m) and a turn of ``yaw`` (rad) about z."""
+    mean = pose_from_planar([t[0], t[1], yaw])
+    mean[2] = t[2]
+    return sample_pose(mean, NOISE_COV, n_samples=n, rng=rng)
 
 
 def start_server(workdir: Path, n: int, name: str) -> tuple[subprocess.Popen[str], str, Path]:

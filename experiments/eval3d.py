@@ -20,7 +20,7 @@ estimator) and ``eval3d.png`` (top view of the trajectories and ATE/time bars).
 Usage::
 
     .venv/bin/python experiments/eval3d.py --quick     # 200 poses, N = 100 (make bench)
-    .venv/bin/python experiments/eval3d.py             # 500 poses
+    .venv/bin/python experiments/eval3d.py             # 500 poses: the committed results
 """
 
 from __future__ import annotations

@@ -47,6 +47,24 @@ Usage::
     .venv/bin/python experiments/pose_graph.py --methods joint --spaces tangent   # the fast part
     .venv/bin/python experiments/pose_graph.py --poses 300 --no-timing            # a short run
     .venv/bin/python experiments/pose_graph.py --scenarios --timing-methods joint  # timing only
+
+The committed results (``experiments/results/pose_graph_summary.md``; ``--tag T`` writes
+``pose_graph_runs_T.csv``)::
+
+    .venv/bin/python experiments/pose_graph.py --spaces tangent \
+        --ekf exact shrink shrink-endpoints --no-timing --tag accept_seed8
+    .venv/bin/python experiments/pose_graph.py --seed S --methods joint --spaces tangent \
+        --ekf --no-timing --tag accept_seedS                           # S = 9 ... 21
+    .venv/bin/python experiments/pose_graph.py --seed S --methods joint --spaces tangent \
+        --gains direct endpoints --inflation adaptive --ekf --no-timing \
+        --tag gains_seedS                                              # S = 8 ... 14
+    .venv/bin/python experiments/pose_graph.py --scenarios --timing-methods joint \
+        --tag timing_gains
+
+The N = 1000 runs (``n1000_2d_adaptive``, ``n1000_3d_adaptive``, ``sphere2500_n1000``) were made
+at core b006e7c, before ``--gains`` existed; today's equivalent is ``--scenarios 3d`` (or ``2d``,
+``sphere2500``) ``--methods joint --spaces tangent --n-samples 1000 --gains direct
+--inflation 1.0 --loop-updates adaptive --ekf --no-timing --tag n1000_3d_adaptive``.
 """
 
 from __future__ import annotations
@@ -147,8 +165,12 @@ def gtsam_optimum(graph: PoseGraph, init: Array) -> Array | None:
     """
     try:
         import gtsam
+
+        from experiments.baselines.gtsam_slam import pose3_from_row, row_from_pose3
     except ImportError:
         return None
+    from mcsm_client.sampling import pose_from_planar
+
     fg = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
     if graph.planar:
@@ -166,10 +188,10 @@ def gtsam_optimum(graph: PoseGraph, init: Array) -> Array | None:
         fg.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 1e-8)))
         for (i, j), z, cov in zip(graph.edges, graph.measurements, graph.covariances, strict=True):
             fg.add(gtsam.BetweenFactorPose3(
-                int(i), int(j), _pose3(gtsam, z),
+                int(i), int(j), pose3_from_row(z),
                 gtsam.noiseModel.Gaussian.Covariance(cov[np.ix_(perm, perm)])))
         for k, p in enumerate(init):
-            values.insert(k, _pose3(gtsam, p))
+            values.insert(k, pose3_from_row(p))
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(200)
     params.setRelativeErrorTol(1e-10)
@@ -179,19 +201,10 @@ def gtsam_optimum(graph: PoseGraph, init: Array) -> Array | None:
     for k in range(graph.n_poses):
         if graph.planar:
             p2 = result.atPose2(k)
-            th = p2.theta()
-            out[k] = [p2.x(), p2.y(), 0.0, np.cos(th / 2), 0.0, 0.0, np.sin(th / 2)]
+            out[k] = pose_from_planar([p2.x(), p2.y(), p2.theta()])
         else:
-            p3 = result.atPose3(k)
-            q = p3.rotation().toQuaternion()
-            out[k] = [*p3.translation(), q.w(), q.x(), q.y(), q.z()]
+            out[k] = row_from_pose3(result.atPose3(k))
     return out
-
-
-def _pose3(gtsam: object, p: Array) -> object:
-    g = gtsam  # typed as object: the gtsam module has no stubs
-    q = p[3:] / np.linalg.norm(p[3:])
-    return g.Pose3(g.Rot3.Quaternion(*q), g.Point3(*p[:3]))  # type: ignore[attr-defined]
 
 
 # ---------------------------------------------------------------------------------------------

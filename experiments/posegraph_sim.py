@@ -36,6 +36,12 @@ constraint list (``Constraint(i, j, z, cov, kind)``, in the order a robot would 
 and :func:`write_g2o` for ``EDGE_SE3:QUAT`` / ``EDGE_SE2`` files (g2o information matrices), with
 the ground truth in a second file, so the same runs can be repeated by the g2o readers.
 
+It reproduces no figure by itself: :mod:`experiments.pose_graph`, :mod:`experiments.eval3d` and
+the tests draw their graphs from it. On its own it prints one graph's summary and can write it::
+
+    .venv/bin/python -m experiments.posegraph_sim --seed 8 --poses 1000 --g2o /tmp/helix.g2o
+    .venv/bin/python -m experiments.posegraph_sim --planar --seed 8 --poses 1000
+
 Example
 -------
 >>> import numpy as np
@@ -624,6 +630,10 @@ def from_constraints(
     -------
     PoseGraph
     """
+    # The readers' constraints come from mcsm_client, so their planar layout is the client's:
+    # one lift for both (the simulator above stays free of mcsm).
+    from mcsm_client.sampling import planar_cov_to_pose_cov, pose_from_planar
+
     pairs, means, covs, loops = [], [], [], []
     for c in constraints:
         kind = str(c.kind)
@@ -634,10 +644,7 @@ def from_constraints(
         z = np.asarray(getattr(c, "mean", getattr(c, "z", None)), dtype=float)
         cov = np.asarray(c.cov, dtype=float)
         if z.shape == (3,):
-            z = np.array([z[0], z[1], 0.0, np.cos(z[2] / 2), 0.0, 0.0, np.sin(z[2] / 2)])
-            full = np.zeros((6, 6))
-            full[np.ix_([0, 1, 5], [0, 1, 5])] = cov
-            cov = full
+            z, cov = pose_from_planar(z), planar_cov_to_pose_cov(cov)
         pairs.append((i, j))
         means.append(z)
         covs.append(cov)

@@ -24,7 +24,7 @@ Outputs under ``--results``: ``realdata.csv`` and ``realdata_victoria.png``,
 Usage::
 
     .venv/bin/python experiments/realdata.py --quick   # Victoria Park first 1000 poses, N=200
-    .venv/bin/python experiments/realdata.py           # first 3000 poses, N=1000
+    .venv/bin/python experiments/realdata.py           # first 3000 poses, N=1000: committed
     .venv/bin/python experiments/realdata.py --max-poses 0   # all 6969 poses
 """
 

@@ -3,8 +3,9 @@
 PAPER §3 on real data: odometry readings become pose-to-pose ATs, Cartesian landmark sightings
 become point updates, re-sightings close loops (case II); ``bounded`` removes each superseded
 pose so the map holds the first pose, the current pose and the landmarks. The file's noise is
-covariance (``shared/notes/datasets.md``); needs the optional ``gtsam`` extra for the file
-(``pip install 'mcsm[eval]'``), or pass any dataset path with ``--file``.
+covariance (:mod:`mcsm_client.datasets` documents each format's convention); needs the optional
+``gtsam`` extra for the file (``pip install 'mcsm[eval]'``), or pass any dataset path with
+``--file``.
 
     python clients/examples/play_victoria_park.py --in-process 300 --max-constraints 500
 """

@@ -11,8 +11,8 @@ chain of ``Pose2`` odometry ``BetweenFactor`` s plus **Cartesian** point sightin
 ``z = R(θ_i)ᵀ (l - p_i)`` with a 2x2 covariance. GTSAM's Python wrapper has no pose-to-point
 factor, so the sighting is a small :class:`gtsam.CustomFactor` with analytic Jacobians
 (``point_factor_2d``). We deliberately do not use ``gtsam.load2D``: it turns Cartesian sightings
-into bearing/range factors with invented sigmas (``shared/notes/datasets.md``), which is not the
-model our map is given.
+into bearing/range factors with invented sigmas (bearing sqrt(c11/10) rad, range sqrt(c11) m, as
+if the x-y covariance held at 10 m), which is not the model our map is given.
 
 Pose graphs (2D and 3D) use ``BetweenFactorPose2`` / ``BetweenFactorPose3`` directly.
 
@@ -593,8 +593,10 @@ class PoseEdge3D:
 
 
 def pose3_from_row(row: Array) -> gtsam.Pose3:
-    """A ``gtsam.Pose3`` from one ``x y z qw qx qy qz`` row."""
-    rot = gtsam.Rot3.Quaternion(float(row[3]), float(row[4]), float(row[5]), float(row[6]))
+    """A ``gtsam.Pose3`` from one ``x y z qw qx qy qz`` row (the quaternion normalised here)."""
+    q = np.asarray(row[3:7], dtype=np.float64)
+    q = q / np.linalg.norm(q)
+    rot = gtsam.Rot3.Quaternion(float(q[0]), float(q[1]), float(q[2]), float(q[3]))
     return gtsam.Pose3(rot, gtsam.Point3(float(row[0]), float(row[1]), float(row[2])))
 
 

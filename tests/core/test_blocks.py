@@ -1,8 +1,8 @@
-"""The joint update's block passes: bit-identical whatever the blocks or the thread count.
+"""The joint update's frame pass: bit-identical whatever the thread count or frame split.
 
 The server replays recordings on whatever machine it runs on, so a digest must not depend on
-the number of cores: these tests run the same operations with one block, many tiny blocks,
-one thread and several, and compare state digests bit for bit.
+the number of cores: these tests run the same operations on one thread and on several with
+frame ranges of every size, and compare state digests bit for bit.
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from mcsm import StochasticMap
-from mcsm.core import smap
+from mcsm.core import joint
 from mcsm.errors import InvalidOperation
 
 from tests.helpers import random_at
@@ -38,13 +38,12 @@ def _run(threads: int, **opts: object) -> StochasticMap:
 @pytest.mark.parametrize("opts", [{}, {"space": "quaternion"}, {"inflation": 1.01},
                                   {"inflation": "adaptive", "shrink": None},
                                   {"gain": "endpoints"}, {"gain": "endpoints", "shrink": None}])
-def test_digest_does_not_depend_on_blocks_or_threads(monkeypatch: pytest.MonkeyPatch,
-                                                     opts: dict[str, object]) -> None:
-    one_block = _run(1, **opts).state_digest()
-    monkeypatch.setattr(smap, "BLOCK_BYTES", 3 * N * 7 * 8)  # blocks of 3 frames
-    assert len(smap._blocks(41, N)) == 14
-    assert _run(1, **opts).state_digest() == one_block
-    assert _run(3, **opts).state_digest() == one_block
+def test_digest_does_not_depend_on_threads(monkeypatch: pytest.MonkeyPatch,
+                                           opts: dict[str, object]) -> None:
+    one_thread = _run(1, **opts).state_digest()
+    monkeypatch.setattr(joint, "_MIN_FRAMES_PER_TASK", 1)  # split even the smallest component
+    for threads in (2, 3, 4):
+        assert _run(threads, **opts).state_digest() == one_thread
 
 
 def test_edges_is_a_copy_that_later_updates_do_not_touch() -> None:

@@ -138,7 +138,8 @@ def check_samples(x: object, n_samples: int | None, width: int) -> Array:
     if not np.isfinite(a).all():
         raise InvalidSamples("non-finite values")
     if width == 7:
-        norm2 = np.einsum("ij,ij->i", a[:, 3:], a[:, 3:])
+        q = a[:, 3:]  # |q|² elementwise in a fixed order: the result enters the map's state
+        norm2 = q[:, 0] * q[:, 0] + q[:, 1] * q[:, 1] + q[:, 2] * q[:, 2] + q[:, 3] * q[:, 3]
         worst = float(np.max(np.abs(norm2 - 1.0)))
         if worst > QUAT_NORM_TOL:
             raise InvalidSamples(f"quaternion norm off by {worst:.3g} (tolerance {QUAT_NORM_TOL})")

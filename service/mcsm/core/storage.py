@@ -1,0 +1,151 @@
+"""How a component's edges are stored: the one module that knows the layout.
+
+A component of M frames keeps its edges root→frame in one buffer ``(capacity, 7, N)``: frame
+``f`` is one contiguous block of 7 rows of N samples (x, y, z, qw, qx, qy, qz), the kernel's
+*rows* layout, so that one fused pass per frame reads it once while it sits in cache. The
+capacity grows by doubling, so adding a frame costs O(N) amortised, not a copy of the
+component. Frame 0 is the root, its edge the exact identity.
+
+Everything outside this module sees edges as ``(N, 7)`` (one AT) or ``(M, N, 7)`` arrays: the
+layout of the API, the wire, exports and recordings; conversions are exact copies.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+
+Array = npt.NDArray[np.float64]
+
+
+def to_rows(x: Array) -> Array:
+    """``(..., N, k)`` -> ``(..., k, N)``, C-contiguous (an exact copy)."""
+    return np.ascontiguousarray(np.swapaxes(x, -1, -2))
+
+
+def from_rows(r: Array) -> Array:
+    """``(..., k, N)`` -> ``(..., N, k)``, C-contiguous (an exact copy)."""
+    return np.ascontiguousarray(np.swapaxes(r, -1, -2))
+
+
+def identity_rows(n_samples: int) -> Array:
+    x = np.zeros((7, n_samples))
+    x[3] = 1.0
+    return x
+
+
+class Component:
+    """The frames of one component, root first, their point flags and their edges."""
+
+    __slots__ = ("frames", "index", "n_samples", "_buf", "_point", "_m")
+
+    def __init__(self, frames: list[str], is_point: list[bool], rows: Array) -> None:
+        """``rows``: ``(M, 7, N)`` edges in the rows layout (taken, not copied, when it is
+        C-contiguous float64)."""
+        m = len(frames)
+        if rows.shape[0] != m or rows.ndim != 3 or rows.shape[1] != 7:
+            raise ValueError("rows must be (M, 7, N) for M frames")
+        self.frames = list(frames)
+        self.index = {f: i for i, f in enumerate(self.frames)}
+        self.n_samples = int(rows.shape[2])
+        self._buf = np.ascontiguousarray(rows, dtype=np.float64)
+        self._point = np.zeros(self._buf.shape[0], dtype=np.uint8)
+        self._point[:m] = np.asarray(is_point, dtype=bool)
+        self._m = m
+
+    # ------------------------------------------------------------------ reading
+    @property
+    def root(self) -> str:
+        return self.frames[0]
+
+    def __len__(self) -> int:
+        return self._m
+
+    @property
+    def rows(self) -> Array:
+        """The edges ``(M, 7, N)``, a view (do not write)."""
+        return self._buf[: self._m]
+
+    @property
+    def buffer(self) -> Array:
+        """The whole buffer ``(capacity, 7, N)`` (for the kernel)."""
+        return self._buf
+
+    @property
+    def point_flags(self) -> npt.NDArray[np.uint8]:
+        """Point flags ``(capacity,)`` as bytes (for the kernel)."""
+        return self._point
+
+    def is_point(self, i: int) -> bool:
+        return bool(self._point[i])
+
+    def point_list(self) -> list[bool]:
+        return [bool(p) for p in self._point[: self._m]]
+
+    def edge_rows(self, i: int) -> Array:
+        """Edge root→frame ``i`` as rows ``(7, N)``, a view (do not write)."""
+        return self._buf[i]
+
+    def edge(self, i: int) -> Array:
+        """Edge root→frame ``i`` as ``(N, 7)`` (a copy)."""
+        return from_rows(self._buf[i])
+
+    def edges(self) -> Array:
+        """All edges as ``(M, N, 7)`` (a copy in the API's layout)."""
+        return from_rows(self._buf[: self._m])
+
+    # ------------------------------------------------------------------ changing
+    def append(self, frame: str, point: bool, rows: Array) -> None:
+        """Add one frame with edge ``rows`` ``(7, N)``; O(N) amortised."""
+        if self._m == self._buf.shape[0]:
+            cap = max(4, 2 * self._buf.shape[0])
+            buf = np.empty((cap, 7, self.n_samples))
+            buf[: self._m] = self._buf[: self._m]
+            flags = np.zeros(cap, dtype=np.uint8)
+            flags[: self._m] = self._point[: self._m]
+            self._buf, self._point = buf, flags
+        self._buf[self._m] = rows
+        self._point[self._m] = bool(point)
+        self.frames.append(frame)
+        self.index[frame] = self._m
+        self._m += 1
+
+    def extend(self, frames: list[str], is_point: list[bool], rows: Array) -> None:
+        """Add several frames (a join); one copy of the new frames."""
+        k = len(frames)
+        need = self._m + k
+        if need > self._buf.shape[0]:
+            cap = max(4, 2 * self._buf.shape[0], need)
+            buf = np.empty((cap, 7, self.n_samples))
+            buf[: self._m] = self._buf[: self._m]
+            flags = np.zeros(cap, dtype=np.uint8)
+            flags[: self._m] = self._point[: self._m]
+            self._buf, self._point = buf, flags
+        self._buf[self._m: need] = rows
+        self._point[self._m: need] = np.asarray(is_point, dtype=bool)
+        for f in frames:
+            self.index[f] = len(self.frames)
+            self.frames.append(f)
+        self._m = need
+
+    def delete(self, i: int) -> None:
+        """Drop frame ``i`` (not the root); other frames' bits are unchanged."""
+        if i == 0:
+            raise ValueError("re-root before deleting the root")
+        self._buf[i: self._m - 1] = self._buf[i + 1: self._m]
+        self._point[i: self._m - 1] = self._point[i + 1: self._m]
+        self._point[self._m - 1] = 0
+        del self.frames[i]
+        self._m -= 1
+        self.index = {f: j for j, f in enumerate(self.frames)}
+
+    def swap_buffer(self, buf: Array) -> Array:
+        """Install ``buf`` (same capacity and shape, frames [0, M) filled) and return the old
+        buffer (the joint update writes into a spare one and swaps after its checks)."""
+        if buf.shape != self._buf.shape:
+            raise ValueError("buffer shapes differ")
+        old, self._buf = self._buf, buf
+        return old
+
+    def copy(self) -> Component:
+        return Component(list(self.frames), self.point_list(), self.rows.copy())
