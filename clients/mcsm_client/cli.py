@@ -97,6 +97,8 @@ def build_parser() -> argparse.ArgumentParser:
     noise.add_argument("--cov", nargs="+", type=float, metavar="C",
                        help="full covariance, row-major (9, 36, 4 or 9 numbers)")
     s.add_argument("--seed", type=int, default=None, help="random seed (default: fresh)")
+    s.add_argument("--trusted", action="store_true",
+                   help="bypass the server's loop-closure gate for this observation")
     s.add_argument("--json", action="store_true")
     _add_common(s)
 
@@ -207,7 +209,8 @@ def _jsonable(x: Any) -> Any:
 def _ack_dict(ack: Any) -> dict[str, Any]:
     return {"seq": ack.seq, "op": ack.op, "kind": ack.kind, "component": ack.component,
             "frames_added": list(ack.frames_added), "frames_removed": list(ack.frames_removed),
-            "duplicate": ack.duplicate}
+            "duplicate": ack.duplicate,
+            "verdict": ack.verdict.to_dict() if ack.verdict is not None else None}
 
 
 def _ack_text(ack: Any) -> str:
@@ -216,6 +219,13 @@ def _ack_text(ack: Any) -> str:
         extra += f" added={','.join(ack.frames_added)}"
     if ack.frames_removed:
         extra += f" removed={','.join(ack.frames_removed)}"
+    v = ack.verdict
+    if v is not None and v.nis is not None:
+        extra += f" verdict={v.status} nis={v.nis:.3g}/dof={v.dof}"
+        if v.threshold is not None:
+            extra += f" (threshold {v.threshold:.3g})"
+        if v.reason:
+            extra += f" [{v.reason}]"
     return f"ok seq={ack.seq} {ack.kind} component={ack.component}{extra}"
 
 
@@ -280,16 +290,16 @@ def cmd_update(args: argparse.Namespace) -> int:
             if args.planar is not None:
                 x = sample_planar(args.planar, _noise_cov(noise, 3, as_sigma), n_samples=n,
                                   rng=rng)
-                ack = c.update(args.a, args.b, x)
+                ack = c.update(args.a, args.b, x, trusted=args.trusted)
             elif args.pose is not None:
                 x = sample_pose(args.pose, _noise_cov(noise, 6, as_sigma), n_samples=n,
                                 rng=rng)
-                ack = c.update(args.a, args.b, x)
+                ack = c.update(args.a, args.b, x, trusted=args.trusted)
             else:
                 d = len(args.point)
                 p = sample_point(args.point, _noise_cov(noise, d, as_sigma), n_samples=n,
                                  rng=rng)
-                ack = c.update_point(args.a, args.b, p)
+                ack = c.update_point(args.a, args.b, p, trusted=args.trusted)
         except ValueError as exc:
             raise UsageError(str(exc)) from None
     _print(args, _ack_dict(ack), _ack_text(ack))

@@ -291,11 +291,15 @@ class MapClient:
 
     # ---------------------------------------------------------------- operations
     def update(self, a: str, b: str, samples: npt.ArrayLike, *,
-               request_id: str | None = None, timeout_s: float | None = None) -> wire.Ack:
+               request_id: str | None = None, timeout_s: float | None = None,
+               trusted: bool = False, stamp_ns: int | None = None) -> wire.Ack:
         """Apply the AT ``a -> b`` given as samples ``(N, 7)`` (``x y z qw qx qy qz``).
 
         Returns the server's :class:`mcsm.wire.Ack` (sequence number, kind: ``new_component``,
-        ``new_frame``, ``join`` or ``loop_closure``, component root, frames added).
+        ``new_frame``, ``join``, ``loop_closure`` or ``rejected``, component root, frames
+        added) with its ``verdict`` (status, the gate's NIS, dof and threshold, reason).
+        ``trusted`` bypasses the server's loop-closure gate; ``stamp_ns`` is the source's
+        measurement time, recorded and returned in the verdict.
 
         Raises
         ------
@@ -308,21 +312,23 @@ class MapClient:
         arr = np.asarray(samples, dtype=np.float64)
         if arr.ndim != 2 or arr.shape[1] != 7:
             raise BadMessage("samples", "shape (N, 7)", arr.shape)
-        return self._update(a, b, arr, request_id, timeout_s)
+        return self._update(a, b, arr, request_id, timeout_s, trusted, stamp_ns)
 
     def update_point(self, a: str, b: str, samples3: npt.ArrayLike, *,
-                     request_id: str | None = None,
-                     timeout_s: float | None = None) -> wire.Ack:
+                     request_id: str | None = None, timeout_s: float | None = None,
+                     trusted: bool = False, stamp_ns: int | None = None) -> wire.Ack:
         """Apply an observation of point frame ``b`` from full frame ``a``: samples ``(N, 3)``."""
         arr = np.asarray(samples3, dtype=np.float64)
         if arr.ndim != 2 or arr.shape[1] != 3:
             raise BadMessage("samples", "shape (N, 3)", arr.shape)
-        return self._update(a, b, arr, request_id, timeout_s)
+        return self._update(a, b, arr, request_id, timeout_s, trusted, stamp_ns)
 
     def _update(self, a: str, b: str, arr: np.ndarray, request_id: str | None,
-                timeout_s: float | None) -> wire.Ack:
+                timeout_s: float | None, trusted: bool = False,
+                stamp_ns: int | None = None) -> wire.Ack:
         rid = request_id or self.new_request_id()
-        payload = wire.encode_update(rid, a, b, arr, sender=self.sender)
+        payload = wire.encode_update(rid, a, b, arr, sender=self.sender, trusted=trusted,
+                                     stamp_ns=stamp_ns)
         return self._call(self._update_key, payload, self._decode_ack, f"update {a}->{b}",
                           timeout_s)
 

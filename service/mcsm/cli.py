@@ -60,6 +60,11 @@ def _parser() -> argparse.ArgumentParser:
                    help="cross-covariance estimator of the joint update: 'direct' (default) or "
                         "'endpoints' (through the loop's two endpoint frames; better on pose "
                         "graphs, with --inflation 1.002 in 3-D; tangent space only)")
+    s.add_argument("--gate", type=_gate, default=None, metavar="Q|none",
+                   help="loop-closure gate: reject a loop closure whose normalised innovation "
+                        "exceeds the chi-square quantile Q (e.g. 0.99) for its dof; the map is "
+                        "unchanged and the ack's verdict says why (default none; a request "
+                        "marked trusted bypasses it)")
     s.add_argument("--record", type=Path, default=None, metavar="PATH.mcap",
                    help="new recording file (default recordings/run-<UTC time>.mcap)")
     s.add_argument("--restore", type=Path, default=None, metavar="PATH.mcap",
@@ -119,6 +124,18 @@ def _shrink(text: str) -> float | None:
             from None
 
 
+def _gate(text: str) -> float | None:
+    if text == "none":
+        return None
+    try:
+        q = float(text)
+    except ValueError:
+        q = -1.0
+    if not 0.0 < q < 1.0:
+        raise argparse.ArgumentTypeError(f"expected a quantile in (0, 1) or 'none', got {text!r}")
+    return q
+
+
 def _inflation(text: str) -> float | str:
     if text == "adaptive":
         return text
@@ -153,7 +170,8 @@ def serve(args: argparse.Namespace) -> int:
         maps=list(dict.fromkeys(maps)), prefix=args.prefix,
         map_options={"n_samples": args.samples, "method": args.method, "space": args.space,
                      "analysis": args.analysis, "shrink": args.shrink,
-                     "inflation": args.inflation, "gain": args.gain},
+                     "inflation": args.inflation, "gain": args.gain,
+                     **({"gate": args.gate} if args.gate is not None else {})},
         record=record, restore=args.restore, checkpoint_every=max(1, args.checkpoint_every),
         queue_size=args.queue_size, fsync=args.fsync, lru_size=max(1, args.id_memory),
         id_ttl_s=max(0.0, args.id_ttl_s))

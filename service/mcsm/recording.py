@@ -100,6 +100,7 @@ class MapState:
         self._acks: OrderedDict[str, tuple[wire.Ack, str, int]] = OrderedDict()
         self.rejected = 0
         self.rejected_by_error: Counter[str] = Counter()
+        self.verdicts: Counter[str] = Counter()  # applied updates per verdict status
         self._digest: tuple[int, str] | None = None
 
     def digest(self) -> str:
@@ -150,9 +151,12 @@ class MapState:
             Whatever the core refuses; the map and ``seq`` are then unchanged.
         """
         if op == "update":
-            r = self.map.update(req.a, req.b, req.samples)
+            r = self.map.update(req.a, req.b, req.samples, trusted=req.trusted)
+            v = r.verdict
+            verdict = wire.Verdict(v.status, v.nis, v.dof, v.threshold, v.reason, req.stamp_ns)
             ack = wire.Ack(req.request_id, self.seq + 1, op, r.kind, r.component,
-                           frames_added=tuple(r.frames_added))
+                           frames_added=tuple(r.frames_added), verdict=verdict)
+            self.verdicts[verdict.status] += 1
         elif op == "remove":
             rr = self.map.remove(req.frame)
             ack = wire.Ack(req.request_id, self.seq + 1, op, "remove", rr.component,

@@ -364,7 +364,8 @@ class Server:
             frames = (req.a, req.b)
         ev = wire.Event(map=st.name, seq=ack.seq, op=item.op, kind=ack.kind,
                         frames=tuple(frames), component=ack.component, time_ns=time.time_ns(),
-                        digest=digest)
+                        digest=digest,
+                        extra={"verdict": ack.verdict.to_dict()} if ack.verdict else {})
         try:
             self._publishers[st.name].put(wire.encode_event(ev))
         except zenoh.ZError as exc:
@@ -380,6 +381,7 @@ class Server:
             digest=st.digest(), frames=tuple(m.frames()),
             components={r: tuple(m.component(r)) for r in m.components()},
             rejected=rejected, rejected_by_error=by_error, server_id=self.server_id,
+            verdicts=dict(st.verdicts),
             recording=str(self.recorder.path) if self.recorder is not None else "",
             queue_length=self._queue.qsize())
 

@@ -201,6 +201,10 @@ class UpdateRequest:
     b: str
     samples: Samples
     sender: str = ""
+    trusted: bool = False
+    """Bypass the map's loop-closure gate (the source vouches for this constraint)."""
+    stamp_ns: int | None = None
+    """The source's measurement time (ns since the epoch), recorded and returned in verdicts."""
 
     @property
     def point(self) -> bool:
@@ -267,6 +271,46 @@ class SubmapImportRequest:
     sender: str = ""
 
 
+VERDICT_STATUSES = ("accepted", "rejected", "pending", "retracted", "reinstated")
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """What the map did with one constraint (an update): ``status`` (accepted, rejected, ...),
+    the gate's ``nis`` over ``dof`` live dimensions against ``threshold`` (None: not gated),
+    ``reason`` (why there was nothing to test, or "trusted"), and the source's ``stamp_ns``."""
+
+    status: str
+    nis: float | None = None
+    dof: int = 0
+    threshold: float | None = None
+    reason: str = ""
+    stamp_ns: int | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"status": self.status, "nis": self.nis, "dof": self.dof,
+                "threshold": self.threshold, "reason": self.reason, "stamp_ns": self.stamp_ns}
+
+    @classmethod
+    def from_dict(cls, d: Any) -> Verdict:
+        if not isinstance(d, dict):
+            raise BadMessage("verdict", "a map", type(d).__name__)
+        _keys(d, ("status", "nis", "dof", "threshold", "reason", "stamp_ns"), ())
+        status = _str(d, "status", max_chars=16)
+        if status not in VERDICT_STATUSES:
+            raise BadMessage("verdict.status", " | ".join(VERDICT_STATUSES), _short(status))
+        for key in ("nis", "threshold"):
+            if d[key] is not None and not isinstance(d[key], (int, float)):
+                raise BadMessage(f"verdict.{key}", "a number or nil", _short(d[key]))
+        stamp = d["stamp_ns"]
+        if stamp is not None and type(stamp) is not int:
+            raise BadMessage("verdict.stamp_ns", "an integer or nil", _short(stamp))
+        return cls(status=status, nis=None if d["nis"] is None else float(d["nis"]),
+                   dof=_int(d, "dof"),
+                   threshold=None if d["threshold"] is None else float(d["threshold"]),
+                   reason=_str(d, "reason", max_chars=256, default=""), stamp_ns=stamp)
+
+
 @dataclass(frozen=True)
 class Ack:
     """The server's acknowledgement of an applied operation.
@@ -287,6 +331,7 @@ class Ack:
     frames_removed: tuple[str, ...] = ()
     duplicate: bool = False
     server: str = ""
+    verdict: Verdict | None = None
 
 
 @dataclass(frozen=True)
@@ -316,6 +361,8 @@ class MapInfo:
     server_id: str
     recording: str
     queue_length: int = 0
+    verdicts: dict[str, int] = field(default_factory=dict)
+    """Updates per verdict status (accepted, rejected, ...)."""
 
     @property
     def n_frames(self) -> int:
@@ -520,12 +567,18 @@ def decode_samples(obj: Any, n_samples: int | None, widths: tuple[int, ...] = (7
 # --------------------------------------------------------------------------------------------
 
 def encode_update(request_id: str, a: str, b: str, samples: npt.ArrayLike,
-                  sender: str = "") -> bytes:
-    """An update request: AT ``a -> b`` ``(N, 7)`` or point ``b`` from ``a`` ``(N, 3)``."""
+                  sender: str = "", *, trusted: bool = False,
+                  stamp_ns: int | None = None) -> bytes:
+    """An update request: AT ``a -> b`` ``(N, 7)`` or point ``b`` from ``a`` ``(N, 3)``;
+    ``trusted`` bypasses the gate, ``stamp_ns`` is the source's measurement time."""
     d: dict[str, Any] = {"v": VERSION, "id": request_id, "a": a, "b": b,
                          "samples": pack_array(samples)}
     if sender:
         d["sender"] = sender
+    if trusted:
+        d["trusted"] = True
+    if stamp_ns is not None:
+        d["stamp_ns"] = int(stamp_ns)
     return pack(d)
 
 
@@ -538,13 +591,20 @@ def decode_update(payload: bytes, n_samples: int | None, *,
     LimitExceeded, BadMessage, UnsupportedVersion, SampleCountMismatch, InvalidSamples
     """
     d = unpack(payload, max_bytes=max_bytes)
-    _keys(d, ("id", "a", "b", "samples"), ("sender",))
+    _keys(d, ("id", "a", "b", "samples"), ("sender", "trusted", "stamp_ns"))
     rid = _request_id(d)
     a = check_frame(d["a"], "a")
     b = check_frame(d["b"], "b")
     sender = _str(d, "sender", max_chars=MAX_SENDER_CHARS, default="")
+    trusted = d.get("trusted", False)
+    if type(trusted) is not bool:
+        raise BadMessage("trusted", "true or false", _short(trusted))
+    stamp_ns = _int(d, "stamp_ns") if "stamp_ns" in d else None
+    if stamp_ns is not None and stamp_ns >= 2**63:
+        raise BadMessage("stamp_ns", "an integer below 2**63", _short(stamp_ns))
     samples = decode_samples(d["samples"], n_samples)
-    return UpdateRequest(request_id=rid, a=a, b=b, samples=samples, sender=sender)
+    return UpdateRequest(request_id=rid, a=a, b=b, samples=samples, sender=sender,
+                         trusted=trusted, stamp_ns=stamp_ns)
 
 
 def encode_remove(request_id: str, frame: str, sender: str = "") -> bytes:
@@ -672,7 +732,8 @@ def encode_ack(ack: Ack) -> bytes:
                  "kind": ack.kind, "component": ack.component,
                  "frames_added": list(ack.frames_added),
                  "frames_removed": list(ack.frames_removed), "duplicate": ack.duplicate,
-                 "server": ack.server})
+                 "server": ack.server,
+                 **({"verdict": ack.verdict.to_dict()} if ack.verdict is not None else {})})
 
 
 def _str_list(obj: Any, fieldname: str) -> tuple[str, ...]:
@@ -684,7 +745,7 @@ def _str_list(obj: Any, fieldname: str) -> tuple[str, ...]:
 def decode_ack(payload: bytes) -> Ack:
     d = unpack(payload, max_bytes=MAX_REPLY_BYTES)
     _keys(d, ("id", "seq", "op", "kind", "component", "frames_added", "frames_removed",
-              "duplicate"), ("server",))
+              "duplicate"), ("server", "verdict"))
     comp = d["component"]
     if comp is not None and not isinstance(comp, str):
         raise BadMessage("component", "a frame name or nil", _short(comp))
@@ -693,7 +754,8 @@ def decode_ack(payload: bytes) -> Ack:
                component=comp, frames_added=_str_list(d["frames_added"], "frames_added"),
                frames_removed=_str_list(d["frames_removed"], "frames_removed"),
                duplicate=bool(d["duplicate"]),
-               server=_str(d, "server", max_chars=MAX_ID_CHARS, default=""))
+               server=_str(d, "server", max_chars=MAX_ID_CHARS, default=""),
+               verdict=Verdict.from_dict(d["verdict"]) if "verdict" in d else None)
 
 
 def request_fingerprint(op: str, req: Any) -> str:
@@ -759,14 +821,15 @@ def encode_info_reply(info: MapInfo) -> bytes:
                  "components": {k: list(v) for k, v in info.components.items()},
                  "rejected": info.rejected, "rejected_by_error": dict(info.rejected_by_error),
                  "server_id": info.server_id, "recording": info.recording,
-                 "queue_length": info.queue_length})
+                 "queue_length": info.queue_length, "verdicts": dict(info.verdicts)})
 
 
 def decode_info_reply(payload: bytes) -> MapInfo:
     # one entry per component: allow as many as a map may have frames
     d = unpack(payload, max_bytes=MAX_REPLY_BYTES, max_map_len=MAX_SUBMAP_FRAMES)
     _keys(d, ("map", "n_samples", "options", "seq", "digest", "frames", "components",
-              "rejected", "rejected_by_error", "server_id", "recording"), ("queue_length",))
+              "rejected", "rejected_by_error", "server_id", "recording"),
+          ("queue_length", "verdicts"))
     if not isinstance(d["options"], dict) or not isinstance(d["components"], dict):
         raise BadMessage("options/components", "maps", "other types")
     if not isinstance(d["rejected_by_error"], dict):
@@ -781,7 +844,15 @@ def decode_info_reply(payload: bytes) -> MapInfo:
         server_id=_str(d, "server_id", max_chars=256),
         recording=_str(d, "recording", max_chars=4096),
         queue_length=int(d.get("queue_length", 0)),
+        verdicts=_count_map(d.get("verdicts", {}), "verdicts"),
     )
+
+
+def _count_map(obj: Any, fieldname: str) -> dict[str, int]:
+    if not isinstance(obj, dict) or not all(
+            isinstance(k, str) and type(v) is int for k, v in obj.items()):
+        raise BadMessage(fieldname, "a map of names to counts", _short(obj))
+    return dict(obj)
 
 
 def encode_submap_reply(r: SubmapReply) -> bytes:
