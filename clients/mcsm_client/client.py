@@ -69,6 +69,8 @@ T = TypeVar("T")
 DEFAULT_TIMEOUT_S = 10.0
 BACKOFF_FIRST_S = 0.05
 BACKOFF_MAX_S = 1.0
+MIN_ATTEMPT_S = 0.02
+"""An attempt with less time left than this is not started (the call ends)."""
 
 
 class MapClient:
@@ -201,15 +203,18 @@ class MapClient:
         deadline = time.monotonic() + t
         delay = BACKOFF_FIRST_S
         state, last_server = "none", ""
+        # time spent in each state; the one that took most of the deadline names the failure
+        spent = {"none": 0.0, "silent": 0.0, "slow": 0.0}
         attempt = 0
         while True:
-            left = deadline - time.monotonic()
-            if left <= 0:
+            t_iter = time.monotonic()
+            left = deadline - t_iter
+            if left < MIN_ATTEMPT_S:
                 break
             if self._server is None:
                 self._server = self._resolve_server(left)
             left = deadline - time.monotonic()
-            if self._server is not None and left > 0:
+            if self._server is not None and left >= MIN_ATTEMPT_S:
                 attempt += 1
                 last_server = self._server
                 got = self._attempt(key, payload, left, self._server)
@@ -224,17 +229,19 @@ class MapClient:
             else:
                 state = "none"
             left = deadline - time.monotonic()
-            if left <= 0:
-                break
-            log.info("%s: %s; trying again in %.2g s (%.3g s left of %.3g s)", what,
-                     {"none": "no live server", "slow": "no reply yet",
-                      "silent": "no reply at all"}[state], min(delay, left), left, t)
-            time.sleep(min(delay, left))
-            delay = min(2 * delay, BACKOFF_MAX_S)
-        log.info("%s: gave up after %.3g s (%d attempts, last: %s)", what, t, attempt, state)
-        if state == "none":
+            if left >= MIN_ATTEMPT_S:
+                log.info("%s: %s; trying again in %.2g s (%.3g s left of %.3g s)", what,
+                         {"none": "no live server", "slow": "no reply yet",
+                          "silent": "no reply at all"}[state], min(delay, left), left, t)
+                time.sleep(min(delay, left))
+                delay = min(2 * delay, BACKOFF_MAX_S)
+            spent[state] += time.monotonic() - t_iter
+        cause = max(spent, key=lambda k: spent[k]) if attempt else "none"
+        log.info("%s: gave up after %.3g s (%d attempts; %s)", what, t, attempt,
+                 ", ".join(f"{k} {v:.2g} s" for k, v in spent.items()))
+        if cause == "none":
             raise NoServer(self.map, self.keys.alive_any, t)
-        if state == "silent":
+        if cause == "silent":
             raise NoPermittedServer(key, last_server, t)
         raise Timeout(f"{what} (server {last_server} is alive but did not answer)", t)
 
@@ -249,7 +256,8 @@ class MapClient:
         outcome = "silent"
         # The handler ends when the query is finalised (every replier done, or zenoh's own
         # timeout); the extra slack only guards against a finalisation that never comes.
-        deadline = time.monotonic() + timeout_s + 2.0
+        t0 = time.monotonic()
+        deadline = t0 + timeout_s + 2.0
         while time.monotonic() < deadline:
             try:
                 reply = replies.recv()
@@ -275,6 +283,8 @@ class MapClient:
             if from_server:
                 return False, err_payload
             self._foreign(key, replier, "error reply")
+        if outcome == "silent" and time.monotonic() - t0 >= 0.9 * timeout_s:
+            outcome = "slow"  # it ran out its time: that is not the instant silence of a denial
         return outcome
 
     def _foreign(self, key: str, replier: Any, what: str) -> None:
