@@ -115,6 +115,19 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--json", action="store_true")
     _add_common(s)
 
+    for name, text in (("retract", "take back an update by its request id (the map becomes "
+                                   "what it would be without it)"),
+                       ("reinstate", "put a retracted update back")):
+        s = sub.add_parser(name, help=text)
+        s.add_argument("request_id", help="the update's request id (from its ack or events)")
+        s.add_argument("--json", action="store_true")
+        _add_common(s)
+
+    s = sub.add_parser("verdict", help="what the map did with a past request (gate verdict)")
+    s.add_argument("request_id")
+    s.add_argument("--json", action="store_true")
+    _add_common(s)
+
     s = sub.add_parser("watch", help="print the map's events as they happen (Ctrl-C stops)")
     s.add_argument("--count", type=int, default=None, help="stop after this many events")
     s.add_argument("--duration-s", type=float, default=None, help="stop after this long")
@@ -334,6 +347,35 @@ def cmd_remove(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_retract(args: argparse.Namespace) -> int:
+    """``retract`` / ``reinstate``: take back an update, or put it back."""
+    with _client(args) as c:
+        fn = c.retract if args.command == "retract" else c.reinstate
+        ack = fn(args.request_id)
+    _print(args, _ack_dict(ack), _ack_text(ack) + f" target={args.request_id}"
+           + (f" verdict={ack.verdict.status}" if ack.verdict is not None else ""))
+    return EXIT_OK
+
+
+def cmd_verdict(args: argparse.Namespace) -> int:
+    """``verdict``: the current verdict of a past request."""
+    with _client(args) as c:
+        v = c.verdict(args.request_id)
+    d = v.to_dict() if v is not None else None
+    if v is None:
+        text = f"{args.request_id}: no verdict (a remove or an import)"
+    else:
+        text = f"{args.request_id}: {v.status}"
+        if v.nis is not None:
+            text += f" nis={v.nis:.4g} dof={v.dof}"
+        if v.threshold is not None:
+            text += f" threshold={v.threshold:.4g}"
+        if v.reason:
+            text += f" ({v.reason})"
+    _print(args, {"request_id": args.request_id, "verdict": d}, text)
+    return EXIT_OK
+
+
 def cmd_watch(args: argparse.Namespace) -> int:
     """``watch``: print events until ``--count``/``--duration-s`` or Ctrl-C."""
     deadline = None if args.duration_s is None else time.monotonic() + args.duration_s
@@ -505,6 +547,7 @@ def cmd_multirobot(args: argparse.Namespace) -> int:
 
 
 COMMANDS = {"info": cmd_info, "update": cmd_update, "query": cmd_query, "remove": cmd_remove,
+            "retract": cmd_retract, "reinstate": cmd_retract, "verdict": cmd_verdict,
             "watch": cmd_watch, "play": cmd_play, "sim": cmd_sim, "multirobot": cmd_multirobot}
 
 

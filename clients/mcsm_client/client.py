@@ -350,6 +350,33 @@ class MapClient:
         return self._call(self._remove_key, payload, self._decode_ack, f"remove {frame}",
                           timeout_s)
 
+    def retract(self, target: str, *, request_id: str | None = None,
+                timeout_s: float | None = None) -> wire.Ack:
+        """Take back the update whose request id is ``target``: the server restores its last
+        snapshot before it and applies every later input again without it (bit-identical to a
+        map that never had it). The ack's verdict is the target's (``retracted``); events
+        list the verdicts that changed. Refused (``InvalidOperation``) when the target is not
+        an update of the retract window or is already retracted."""
+        rid = request_id or self.new_request_id()
+        payload = wire.encode_retract(rid, target, sender=self.sender)
+        return self._call(self.keys.retract, payload, self._decode_ack, f"retract {target}",
+                          timeout_s)
+
+    def reinstate(self, target: str, *, request_id: str | None = None,
+                  timeout_s: float | None = None) -> wire.Ack:
+        """Put a retracted update back (as if it had always been applied, gate bypassed)."""
+        rid = request_id or self.new_request_id()
+        payload = wire.encode_retract(rid, target, sender=self.sender)
+        return self._call(self.keys.reinstate, payload, self._decode_ack,
+                          f"reinstate {target}", timeout_s)
+
+    def verdict(self, target: str, *, timeout_s: float | None = None) -> wire.Verdict | None:
+        """The current verdict of a past request (None for a remove or an import)."""
+        payload = wire.encode_verdict_request(self.new_request_id(), target)
+        ack = self._call(self.keys.verdict, payload, self._decode_ack, f"verdict {target}",
+                         timeout_s)
+        return ack.verdict
+
     def query(self, a: str, b: str, *, timeout_s: float | None = None) -> np.ndarray:
         """Samples ``(N, 7)`` of the AT ``a -> b`` (a new array; row order is the map's).
 

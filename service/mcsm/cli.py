@@ -76,6 +76,13 @@ def _parser() -> argparse.ArgumentParser:
                    help="requests waiting for the worker before 'busy' errors")
     s.add_argument("--fsync", action="store_true",
                    help="fsync the recording before each ack (survives power loss; slow)")
+    s.add_argument("--snapshot-every", type=int, default=100, metavar="K",
+                   help="keep an in-memory snapshot of each map every K operations "
+                        "(default 100); retract/reinstate restore one and apply the later "
+                        "inputs again")
+    s.add_argument("--snapshots-kept", type=int, default=5, metavar="S",
+                   help="snapshots kept per map (default 5): updates of the last (S-1)*K to "
+                        "S*K operations can be retracted")
     s.add_argument("--id-ttl-s", type=float, default=600.0, metavar="S",
                    help="remember each applied request id this long, so a retry (also after "
                         "a --restore) is not applied twice (default 600)")
@@ -174,7 +181,8 @@ def serve(args: argparse.Namespace) -> int:
                      **({"gate": args.gate} if args.gate is not None else {})},
         record=record, restore=args.restore, checkpoint_every=max(1, args.checkpoint_every),
         queue_size=args.queue_size, fsync=args.fsync, lru_size=max(1, args.id_memory),
-        id_ttl_s=max(0.0, args.id_ttl_s))
+        id_ttl_s=max(0.0, args.id_ttl_s), snapshot_every=max(1, args.snapshot_every),
+        snapshots_kept=max(1, args.snapshots_kept))
     try:
         for name in opts.maps:
             wire.map_keys(name, opts.prefix)

@@ -46,14 +46,16 @@ from mcap.writer import Writer
 
 from mcsm import __version__, wire
 from mcsm.core.smap import StochasticMap
-from mcsm.errors import McsmError, RequestIdReused
+from mcsm.errors import InvalidOperation, McsmError, RequestIdReused
+from mcsm.history import DEFAULT_SNAPSHOT_EVERY, DEFAULT_SNAPSHOTS_KEPT, History
 
 log = logging.getLogger(__name__)
 
 TOPIC_CONFIG = "/mcsm/config"
 TOPIC_CHECKPOINT = "/mcsm/checkpoint"
 INPUT_TOPICS = {"update": "/mcsm/in/update", "remove": "/mcsm/in/remove",
-                "import": "/mcsm/in/submap_import"}
+                "import": "/mcsm/in/submap_import", "retract": "/mcsm/in/retract",
+                "reinstate": "/mcsm/in/reinstate"}
 TOPIC_OPS = {v: k for k, v in INPUT_TOPICS.items()}
 _SCHEMAS = {TOPIC_CONFIG: ("mcsm.RecordConfig", "record_config.json"),
             TOPIC_CHECKPOINT: ("mcsm.RecordCheckpoint", "record_checkpoint.json"),
@@ -89,9 +91,14 @@ class MapState:
     """
 
     def __init__(self, name: str, smap: StochasticMap, lru_size: int = DEFAULT_LRU,
-                 id_ttl_s: float = DEFAULT_ID_TTL_S) -> None:
+                 id_ttl_s: float = DEFAULT_ID_TTL_S, *,
+                 snapshot_every: int = DEFAULT_SNAPSHOT_EVERY,
+                 snapshots_kept: int = DEFAULT_SNAPSHOTS_KEPT) -> None:
         self.name = name
         self.map = smap
+        self.history = History(max(1, int(snapshot_every)), max(1, int(snapshots_kept)))
+        self.history.start(smap, 0)
+        self.last_changed: dict[str, wire.Verdict] = {}  # verdicts the last retract changed
         self.n_samples = int(smap.n_samples)
         self.seq = 0
         self.lru_size = int(lru_size)
@@ -150,6 +157,7 @@ class MapState:
         McsmError
             Whatever the core refuses; the map and ``seq`` are then unchanged.
         """
+        self.last_changed = {}
         if op == "update":
             r = self.map.update(req.a, req.b, req.samples, trusted=req.trusted)
             v = r.verdict
@@ -165,6 +173,8 @@ class MapState:
             r = self.map.import_component(req.submap.to_core())
             ack = wire.Ack(req.request_id, self.seq + 1, op, r.kind, r.component,
                            frames_added=tuple(r.frames_added))
+        elif op in ("retract", "reinstate"):
+            ack = self._retract(op, req)
         else:
             raise McsmError(f"unknown operation {op!r}")
         self.seq = ack.seq
@@ -173,7 +183,41 @@ class MapState:
         fp = fingerprint if fingerprint is not None else wire.request_fingerprint(op, req)
         self._acks[req.request_id] = (ack, fp, t_ns)
         self._forget(t_ns)
+        self.history.record(ack.seq, op, req.request_id, req, ack.verdict, self.map)
         return ack
+
+    def _retract(self, op: str, req: Any) -> wire.Ack:
+        """Leave the update ``req.target`` out (retract) or put it back (reinstate): restore
+        the last snapshot before it and apply every later input of the window again."""
+        target = self.history.target(req.target, op == "retract")
+        before = {e.request_id: e.verdict for e in self.history.log if e.op == "update"}
+        smap, changed, commit = self.history.rebuild(target, op == "retract", self.map.threads)
+        self.map = smap
+        commit()
+        for rid, v in changed.items():
+            old = before.get(rid)
+            if old is not None:
+                self.verdicts[old.status] -= 1
+            self.verdicts[v.status] += 1
+            hit = self._acks.get(rid)
+            if hit is not None:
+                self._acks[rid] = (replace(hit[0], verdict=v), hit[1], hit[2])
+        self.verdicts += Counter()  # drop zero counts
+        self.last_changed = changed
+        return wire.Ack(req.request_id, self.seq + 1, op, op, None, verdict=target.verdict)
+
+    def verdict_of(self, request_id: str) -> wire.Ack:
+        """The ack (with its current verdict) of a remembered request id.
+
+        Raises
+        ------
+        InvalidOperation
+            If the id is not remembered (never applied, or forgotten: ``--id-ttl-s``).
+        """
+        hit = self._acks.get(request_id)
+        if hit is None:
+            raise InvalidOperation(f"request {request_id!r} is unknown or forgotten")
+        return hit[0]
 
     def count_rejected(self, err: McsmError) -> None:
         self.rejected += 1
@@ -184,6 +228,8 @@ def decode_input(op: str, payload: bytes, n_samples: int) -> Any:
     """Decode a state-changing request with the wire codec (live and replay share this)."""
     if op == "update":
         return wire.decode_update(payload, n_samples)
+    if op in ("retract", "reinstate"):
+        return wire.decode_retract(payload)
     if op == "remove":
         return wire.decode_remove(payload)
     if op == "import":
@@ -242,6 +288,8 @@ class Recorder:
         now = time.time_ns()
         self._add(TOPIC_CONFIG, {"map": state.name, "options": state.map.options(),
                                  "checkpoint_every": int(checkpoint_every), "time_ns": now,
+                                 "snapshot_every": state.history.snapshot_every,
+                                 "snapshots_kept": state.history.snapshots_kept,
                                  "server_id": server_id, "restored_from": restored_from,
                                  "software": f"mcsm {__version__}"}, now, 0)
         self._flush(self._fsync)
@@ -440,7 +488,9 @@ def replay(path: str | os.PathLike[str], *, sink: Recorder | None = None,
             except (McsmError, KeyError, TypeError, ValueError) as exc:
                 raise RecordingError(str(path), f"bad options for map {name!r}: {exc}"
                                      ) from None
-            st = MapState(name, smap, lru_size)
+            st = MapState(name, smap, lru_size,
+                          snapshot_every=int(d.get("snapshot_every", DEFAULT_SNAPSHOT_EVERY)),
+                          snapshots_kept=int(d.get("snapshots_kept", DEFAULT_SNAPSHOTS_KEPT)))
             rep.states[name] = st
             rep.configs[name] = dict(d)
             if sink is not None:

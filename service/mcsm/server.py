@@ -48,6 +48,7 @@ from mcsm import wire
 from mcsm.core.names import namespace_of
 from mcsm.core.smap import StochasticMap
 from mcsm.errors import Busy, Forbidden, InternalError, McsmError, UnknownFrame
+from mcsm.history import DEFAULT_SNAPSHOT_EVERY, DEFAULT_SNAPSHOTS_KEPT
 from mcsm.recording import (
     DEFAULT_ID_TTL_S,
     DEFAULT_LRU,
@@ -77,6 +78,8 @@ class ServerOptions:
     lru_size: int = DEFAULT_LRU
     id_ttl_s: float = DEFAULT_ID_TTL_S
     fsync: bool = False
+    snapshot_every: int = DEFAULT_SNAPSHOT_EVERY
+    snapshots_kept: int = DEFAULT_SNAPSHOTS_KEPT
 
 
 @dataclass
@@ -159,7 +162,8 @@ class Server:
                                 self.states[name].map.options())
                 continue
             st = MapState(name, StochasticMap.from_options(dict(o.map_options)), o.lru_size,
-                          o.id_ttl_s)
+                          o.id_ttl_s, snapshot_every=o.snapshot_every,
+                          snapshots_kept=o.snapshots_kept)
             self.states[name] = st
             if self.recorder is not None:
                 self.recorder.config(st, o.checkpoint_every, server_id=self.server_id)
@@ -229,6 +233,10 @@ class Server:
                 req = wire.decode_remove(payload)
                 if ns and namespace_of(req.frame) != ns:
                     raise Forbidden(key, req.frame, ns, "a remove of another namespace's frame")
+            elif op in ("retract", "reinstate"):
+                req = wire.decode_retract(payload)
+            elif op == "verdict":
+                req = wire.decode_verdict_request(payload)
             elif op == "query":
                 req = wire.decode_query(payload)
             elif op == "info":
@@ -291,8 +299,15 @@ class Server:
         if self.failed.is_set():
             self._reply_err(item, McsmError("server stopped: recording failed"))
             return
-        if item.op in ("update", "remove", "import"):
+        if item.op in ("update", "remove", "import", "retract", "reinstate"):
             self._apply(item)
+        elif item.op == "verdict":
+            try:
+                ack = st.verdict_of(item.request.target)
+            except McsmError as exc:
+                self._reject(st, item.query, exc, item.request.request_id, item.op)
+                return
+            self._reply(item, wire.encode_ack(replace(ack, server=self.server_id)))
         elif item.op == "query":
             req = item.request
             try:
@@ -362,10 +377,13 @@ class Server:
         frames = ack.frames_added or ack.frames_removed
         if item.op == "update":
             frames = (req.a, req.b)
+        extra: dict[str, Any] = {"verdict": ack.verdict.to_dict()} if ack.verdict else {}
+        if item.op in ("retract", "reinstate"):  # what changed: the target and re-gated inputs
+            extra["target"] = req.target
+            extra["changed"] = {rid: v.to_dict() for rid, v in st.last_changed.items()}
         ev = wire.Event(map=st.name, seq=ack.seq, op=item.op, kind=ack.kind,
                         frames=tuple(frames), component=ack.component, time_ns=time.time_ns(),
-                        digest=digest,
-                        extra={"verdict": ack.verdict.to_dict()} if ack.verdict else {})
+                        digest=digest, extra=extra)
         try:
             self._publishers[st.name].put(wire.encode_event(ev))
         except zenoh.ZError as exc:

@@ -127,6 +127,18 @@ class Keys:
         return self._k("submap")
 
     @property
+    def retract(self) -> str:
+        return self._k("retract")
+
+    @property
+    def reinstate(self) -> str:
+        return self._k("reinstate")
+
+    @property
+    def verdict(self) -> str:
+        return self._k("verdict")
+
+    @property
     def events(self) -> str:
         return self._k("events")
 
@@ -153,10 +165,11 @@ class Keys:
         leaf, _, ns = rest.partition("/")
         if leaf in ("update", "remove") and (not ns or _NS_RE.fullmatch(ns)):
             return leaf, ns
-        if leaf in ("query", "info", "submap") and not ns:
+        if leaf in ("query", "info", "submap", "retract", "reinstate", "verdict") and not ns:
             return leaf, ""
         raise BadMessage("key", f"one of {self.base}/{{update,remove}}[/<namespace>], "
-                         "query, info or submap (no wildcards)", _short(key))
+                         "query, info, submap, retract, reinstate or verdict (no wildcards)",
+                         _short(key))
 
 
 _NS_RE = re.compile(r"[A-Za-z0-9_.:+-]{1,128}")
@@ -216,6 +229,23 @@ class RemoveRequest:
     request_id: str
     frame: str
     sender: str = ""
+
+
+@dataclass(frozen=True)
+class RetractRequest:
+    """Retract (or reinstate, by the key it is sent to) the update ``target`` (a request id)."""
+
+    request_id: str
+    target: str
+    sender: str = ""
+
+
+@dataclass(frozen=True)
+class VerdictRequest:
+    """Ask for the current verdict of the request ``target`` (a request id)."""
+
+    request_id: str
+    target: str
 
 
 @dataclass(frozen=True)
@@ -621,6 +651,34 @@ def decode_remove(payload: bytes, *, max_bytes: int = MAX_PAYLOAD_BYTES) -> Remo
                          sender=_str(d, "sender", max_chars=MAX_SENDER_CHARS, default=""))
 
 
+def encode_retract(request_id: str, target: str, sender: str = "") -> bytes:
+    """A retract or reinstate request (the key says which) of the update ``target``."""
+    d: dict[str, Any] = {"v": VERSION, "id": request_id, "target": target}
+    if sender:
+        d["sender"] = sender
+    return pack(d)
+
+
+def decode_retract(payload: bytes, *, max_bytes: int = MAX_PAYLOAD_BYTES) -> RetractRequest:
+    d = unpack(payload, max_bytes=max_bytes)
+    _keys(d, ("id", "target"), ("sender",))
+    return RetractRequest(request_id=_request_id(d),
+                          target=_str(d, "target", max_chars=MAX_ID_CHARS),
+                          sender=_str(d, "sender", max_chars=MAX_SENDER_CHARS, default=""))
+
+
+def encode_verdict_request(request_id: str, target: str) -> bytes:
+    return pack({"v": VERSION, "id": request_id, "target": target})
+
+
+def decode_verdict_request(payload: bytes, *,
+                           max_bytes: int = MAX_PAYLOAD_BYTES) -> VerdictRequest:
+    d = unpack(payload, max_bytes=max_bytes)
+    _keys(d, ("id", "target"), ())
+    return VerdictRequest(request_id=_request_id(d),
+                          target=_str(d, "target", max_chars=MAX_ID_CHARS))
+
+
 def encode_query(request_id: str, a: str, b: str, want: QueryWant = "samples") -> bytes:
     return pack({"v": VERSION, "id": request_id, "a": a, "b": b, "want": want})
 
@@ -772,6 +830,8 @@ def request_fingerprint(op: str, req: Any) -> str:
         h.update(_bytes_view(req.samples))
     elif isinstance(req, RemoveRequest):
         h.update(f"\0{req.frame}".encode())
+    elif isinstance(req, RetractRequest):
+        h.update(f"\0{req.target}".encode())
     elif isinstance(req, SubmapImportRequest):
         sub = req.submap
         h.update(f"\0{sub.root}\0{'/'.join(sub.frames)}\0{sub.is_point}\0"

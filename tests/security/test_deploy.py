@@ -33,7 +33,7 @@ from tests.wire_cases import CASES
 
 N = 16
 REPO = Path(__file__).resolve().parents[2]
-MAPS = ("ns", "view", "imp", "imp2", "wild", "rogue", "table", "load")
+MAPS = ("ns", "view", "imp", "imp2", "wild", "rogue", "table", "load", "retr")
 DENIED_S = 1.0  # timeout of calls the access control denies (they fail after it, not before)
 
 
@@ -371,3 +371,25 @@ def test_robot_streams_across_sigkill_and_restore_with_authentication(
     finally:
         c.close()
     assert d2.stop(signal.SIGTERM) == 0, d2.log_text()
+
+
+def test_only_the_admin_retracts_everyone_reads_verdicts(dep: Deployment) -> None:
+    rng = np.random.default_rng(1210)
+    with dep.client("robot1", "retr", namespace="robot1") as robot, \
+            dep.client("viewer", "retr", timeout_s=DENIED_S) as viewer, \
+            dep.client("admin", "retr") as admin:
+        robot.update("robot1/a", "robot1/b", noisy_at(rng, N, [1, 0, 0]), request_id="r1-u1")
+        robot.update("robot1/b", "robot1/c", noisy_at(rng, N, [1, 0, 0]), request_id="r1-u2")
+        for who in (robot, viewer):
+            v = who.verdict("r1-u2")
+            assert v is not None and v.status == "accepted"
+        with pytest.raises(NoPermittedServer):
+            viewer.retract("r1-u2")
+        with dep.client("robot1", "retr", namespace="robot1", timeout_s=DENIED_S) as r1:
+            with pytest.raises(NoPermittedServer):
+                r1.retract("r1-u2")
+            with pytest.raises(NoPermittedServer):
+                r1.reinstate("r1-u2")
+        assert admin.retract("r1-u2").verdict.status == "retracted"  # type: ignore[union-attr]
+        assert viewer.verdict("r1-u2").status == "retracted"  # type: ignore[union-attr]
+        assert admin.reinstate("r1-u2").verdict.status == "reinstated"  # type: ignore[union-attr]
