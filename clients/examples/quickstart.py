@@ -7,7 +7,7 @@ come from :mod:`mcsm_client.sampling` (an explicit seed makes the run reproducib
 
 Run against a server (``mcsm serve`` in another shell) or without one::
 
-    python clients/examples/quickstart.py                 # tcp/127.0.0.1:7447, map "default"
+    python clients/examples/quickstart.py                 # tcp/127.0.0.1:7457, map "default"
     python clients/examples/quickstart.py --in-process 500
 """
 

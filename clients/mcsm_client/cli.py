@@ -1,7 +1,8 @@
 """``mcsm-client``: talk to an ``mcsm serve`` map from the shell.
 
 Commands (each takes the connection flags ``--connect``, ``--map``, ``--prefix``,
-``--zenoh-config``, and ``--timeout-s``)::
+``--namespace``, ``--zenoh-config`` and ``--timeout-s``, before or after the command name;
+``ZENOH_CONFIG`` names a config file when ``--zenoh-config`` is not given)::
 
     mcsm-client info [--json]
     mcsm-client update A B --planar DX DY DTH --sigma SX SY STH     # AT a->b, N samples drawn
@@ -15,9 +16,12 @@ Commands (each takes the connection flags ``--connect``, ``--map``, ``--prefix``
     mcsm-client multirobot [--connect-b ENDPOINT | --map-b NAME]
 
 ``play``, ``sim`` and ``multirobot`` also run without a server with ``--in-process N`` (an
-in-process map of N samples). ``--cov`` gives a full covariance (row-major) instead of
-``--sigma``. Exit codes: 0 success, 1 the server refused the request (its error is printed),
-2 bad command line or input file, 3 no server answered in time, 130 interrupted.
+in-process map of N samples); they write only into a frame namespace that has no frames yet
+(``--namespace NS``: frames ``NS/...``). ``--cov`` gives a full covariance (row-major) instead
+of ``--sigma``. Exit codes: 0 success, 1 the server refused the request (its error is
+printed), 2 bad command line or input file (a malformed ``--connect`` too), 3 no answer within
+``--timeout-s`` (no live server, no permitted server for the key, or a slow server: the
+message says which), 130 interrupted.
 """
 
 from __future__ import annotations
@@ -30,8 +34,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from mcsm.connect import add_connection_args, client_kwargs
-from mcsm.errors import McsmError, Timeout
+from mcsm.connect import (
+    add_connection_args,
+    check_endpoint,
+    client_kwargs,
+    fill_connection_defaults,
+)
+from mcsm.errors import McsmError, NoPermittedServer, NoServer, Timeout
 
 EXIT_OK, EXIT_REFUSED, EXIT_USAGE, EXIT_TIMEOUT, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
 
@@ -41,9 +50,9 @@ class UsageError(Exception):
 
 
 def _add_common(p: argparse.ArgumentParser) -> None:
-    add_connection_args(p)
-    p.add_argument("--timeout-s", type=float, default=10.0,
-                   help="deadline of one request attempt, seconds (default 10)")
+    add_connection_args(p, suppress=True)
+    p.add_argument("--timeout-s", type=float, default=argparse.SUPPRESS,
+                   help="how long one request waits for the server, seconds (default 10)")
 
 
 def _add_in_process(p: argparse.ArgumentParser) -> None:
@@ -58,7 +67,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="mcsm-client",
         description="Client of the Monte Carlo stochastic map server (mcsm serve).",
         epilog="Exit codes: 0 ok, 1 refused by the server, 2 usage or input error, "
-               "3 no reply in time, 130 interrupted.")
+               "3 no answer in time (no server, access denied, or slow), 130 interrupted. "
+               "Connection flags go before or after the command.")
+    _add_common(p)
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     s = sub.add_parser("info", help="frames, components, N, sequence number and digest")
@@ -86,6 +97,8 @@ def build_parser() -> argparse.ArgumentParser:
     noise.add_argument("--cov", nargs="+", type=float, metavar="C",
                        help="full covariance, row-major (9, 36, 4 or 9 numbers)")
     s.add_argument("--seed", type=int, default=None, help="random seed (default: fresh)")
+    s.add_argument("--trusted", action="store_true",
+                   help="bypass the server's loop-closure gate for this observation")
     s.add_argument("--json", action="store_true")
     _add_common(s)
 
@@ -99,6 +112,19 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("remove", help="remove a frame (other estimates unchanged)")
     s.add_argument("frame")
+    s.add_argument("--json", action="store_true")
+    _add_common(s)
+
+    for name, text in (("retract", "take back an update by its request id (the map becomes "
+                                   "what it would be without it)"),
+                       ("reinstate", "put a retracted update back")):
+        s = sub.add_parser(name, help=text)
+        s.add_argument("request_id", help="the update's request id (from its ack or events)")
+        s.add_argument("--json", action="store_true")
+        _add_common(s)
+
+    s = sub.add_parser("verdict", help="what the map did with a past request (gate verdict)")
+    s.add_argument("request_id")
     s.add_argument("--json", action="store_true")
     _add_common(s)
 
@@ -196,7 +222,8 @@ def _jsonable(x: Any) -> Any:
 def _ack_dict(ack: Any) -> dict[str, Any]:
     return {"seq": ack.seq, "op": ack.op, "kind": ack.kind, "component": ack.component,
             "frames_added": list(ack.frames_added), "frames_removed": list(ack.frames_removed),
-            "duplicate": ack.duplicate}
+            "duplicate": ack.duplicate,
+            "verdict": ack.verdict.to_dict() if ack.verdict is not None else None}
 
 
 def _ack_text(ack: Any) -> str:
@@ -205,6 +232,13 @@ def _ack_text(ack: Any) -> str:
         extra += f" added={','.join(ack.frames_added)}"
     if ack.frames_removed:
         extra += f" removed={','.join(ack.frames_removed)}"
+    v = ack.verdict
+    if v is not None and v.nis is not None:
+        extra += f" verdict={v.status} nis={v.nis:.3g}/dof={v.dof}"
+        if v.threshold is not None:
+            extra += f" (threshold {v.threshold:.3g})"
+        if v.reason:
+            extra += f" [{v.reason}]"
     return f"ok seq={ack.seq} {ack.kind} component={ack.component}{extra}"
 
 
@@ -269,16 +303,16 @@ def cmd_update(args: argparse.Namespace) -> int:
             if args.planar is not None:
                 x = sample_planar(args.planar, _noise_cov(noise, 3, as_sigma), n_samples=n,
                                   rng=rng)
-                ack = c.update(args.a, args.b, x)
+                ack = c.update(args.a, args.b, x, trusted=args.trusted)
             elif args.pose is not None:
                 x = sample_pose(args.pose, _noise_cov(noise, 6, as_sigma), n_samples=n,
                                 rng=rng)
-                ack = c.update(args.a, args.b, x)
+                ack = c.update(args.a, args.b, x, trusted=args.trusted)
             else:
                 d = len(args.point)
                 p = sample_point(args.point, _noise_cov(noise, d, as_sigma), n_samples=n,
                                  rng=rng)
-                ack = c.update_point(args.a, args.b, p)
+                ack = c.update_point(args.a, args.b, p, trusted=args.trusted)
         except ValueError as exc:
             raise UsageError(str(exc)) from None
     _print(args, _ack_dict(ack), _ack_text(ack))
@@ -313,6 +347,35 @@ def cmd_remove(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_retract(args: argparse.Namespace) -> int:
+    """``retract`` / ``reinstate``: take back an update, or put it back."""
+    with _client(args) as c:
+        fn = c.retract if args.command == "retract" else c.reinstate
+        ack = fn(args.request_id)
+    _print(args, _ack_dict(ack), _ack_text(ack) + f" target={args.request_id}"
+           + (f" verdict={ack.verdict.status}" if ack.verdict is not None else ""))
+    return EXIT_OK
+
+
+def cmd_verdict(args: argparse.Namespace) -> int:
+    """``verdict``: the current verdict of a past request."""
+    with _client(args) as c:
+        v = c.verdict(args.request_id)
+    d = v.to_dict() if v is not None else None
+    if v is None:
+        text = f"{args.request_id}: no verdict (a remove or an import)"
+    else:
+        text = f"{args.request_id}: {v.status}"
+        if v.nis is not None:
+            text += f" nis={v.nis:.4g} dof={v.dof}"
+        if v.threshold is not None:
+            text += f" threshold={v.threshold:.4g}"
+        if v.reason:
+            text += f" ({v.reason})"
+    _print(args, {"request_id": args.request_id, "verdict": d}, text)
+    return EXIT_OK
+
+
 def cmd_watch(args: argparse.Namespace) -> int:
     """``watch``: print events until ``--count``/``--duration-s`` or Ctrl-C."""
     deadline = None if args.duration_s is None else time.monotonic() + args.duration_s
@@ -334,16 +397,42 @@ def cmd_watch(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _map_for(args: argparse.Namespace) -> tuple[Any, Any]:
-    """(target, closer): an in-process map or a connected client."""
+def _map_for(args: argparse.Namespace, **over: Any) -> tuple[Any, Any]:
+    """(target, closer): an in-process map or a connected client, as a ``MapTarget`` whose
+    frames live in ``--namespace`` (when given); refuses a namespace that has frames."""
+    from mcsm_client.players import MapTarget
+
+    prefix = _prefix(args)
     if args.in_process is not None:
         from mcsm import StochasticMap
 
         if args.in_process < 2:
             raise UsageError("--in-process N needs N >= 2")
-        return StochasticMap(args.in_process), None
-    c = _client(args)
-    return c, c
+        return MapTarget(StochasticMap(args.in_process), prefix), None
+    c = _client(args, **over)
+    try:
+        target = MapTarget(c, prefix)
+        taken = target.existing()
+    except BaseException:
+        c.close()
+        raise
+    if taken:
+        c.close()
+        where = f"namespace {prefix!r}" if prefix else "the root namespace (names without '/')"
+        raise UsageError(
+            f"map {c.map!r} already has {len(taken)} frames in {where} (e.g. {taken[0]!r}); "
+            f"{args.command} writes only into an empty namespace, so it would merge into "
+            "them: pass --namespace NAME (frames become NAME/...), or use another map")
+    return target, c
+
+
+def _prefix(args: argparse.Namespace) -> str:
+    from mcsm.core.names import is_frame_name
+
+    ns = args.namespace or ""
+    if ns and not is_frame_name(ns + "/x"):
+        raise UsageError(f"--namespace {ns!r}: expected frame-name segments joined by '/'")
+    return str(ns)
 
 
 def cmd_play(args: argparse.Namespace) -> int:
@@ -426,21 +515,30 @@ def cmd_multirobot(args: argparse.Namespace) -> int:
     if args.in_process is not None:
         from mcsm import StochasticMap
 
-        a_map: Any = StochasticMap(args.in_process)
-        b_map: Any = StochasticMap(args.in_process)
+        from mcsm_client.players import MapTarget
+
+        prefix = _prefix(args)
+        a_map = MapTarget(StochasticMap(args.in_process), prefix)
+        b_map = MapTarget(StochasticMap(args.in_process), prefix)
         res = run_multirobot(cfg, a_map, b_map, rng=rng, log=log)
     else:
-        with _client(args) as ca:
+        ca, closer_a = _map_for(args)
+        try:
             if args.connect_b or args.map_b:
                 over: dict[str, Any] = {}
                 if args.connect_b:
                     over["connect"] = args.connect_b
                 if args.map_b:
                     over["map"] = args.map_b
-                with _client(args, **over) as cb:
+                cb, closer_b = _map_for(args, **over)
+                try:
                     res = run_multirobot(cfg, ca, cb, rng=rng, log=log)
+                finally:
+                    closer_b.close()
             else:
                 res = run_multirobot(cfg, ca, rng=rng, log=log)
+        finally:
+            closer_a.close()
     obj = {"scores": [vars(s) for s in res.scores], "join": res.join_kind,
            "import": res.import_kind, "cross_loop_closures": res.cross_loop_closures,
            "elapsed_s": res.elapsed_s}
@@ -449,6 +547,7 @@ def cmd_multirobot(args: argparse.Namespace) -> int:
 
 
 COMMANDS = {"info": cmd_info, "update": cmd_update, "query": cmd_query, "remove": cmd_remove,
+            "retract": cmd_retract, "reinstate": cmd_retract, "verdict": cmd_verdict,
             "watch": cmd_watch, "play": cmd_play, "sim": cmd_sim, "multirobot": cmd_multirobot}
 
 
@@ -456,17 +555,32 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``mcsm-client`` console script; returns the exit code."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    fill_connection_defaults(args)
+    if not hasattr(args, "timeout_s"):
+        args.timeout_s = 10.0
     prog = f"mcsm-client {args.command}"
     try:
+        if not args.timeout_s > 0:
+            raise UsageError("--timeout-s must be > 0")
+        if args.connect is not None:
+            check_endpoint(args.connect)
+        if getattr(args, "connect_b", None):
+            check_endpoint(args.connect_b, "--connect-b")
         return COMMANDS[args.command](args)
     except UsageError as exc:
         print(f"{prog}: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    except (NoServer, NoPermittedServer) as exc:
+        print(f"{prog}: {exc.message}", file=sys.stderr)
+        return EXIT_TIMEOUT
     except Timeout as exc:
         print(f"{prog}: no answer from the server: {exc.message} (is `mcsm serve` running, "
               f"and do --connect/--map/--prefix match it?)", file=sys.stderr)
         return EXIT_TIMEOUT
     except McsmError as exc:
+        if exc.fields.get("field") in ("--connect", "--connect-b", "--zenoh-config"):
+            print(f"{prog}: {exc.message}", file=sys.stderr)  # a usage error, found early
+            return EXIT_USAGE
         print(f"{prog}: refused: {type(exc).__name__}: {exc.message}", file=sys.stderr)
         return EXIT_REFUSED
     except KeyboardInterrupt:

@@ -3,13 +3,27 @@
 Every call is an acknowledged RPC (a Zenoh ``get`` on ``<prefix>/<map>/<op>``, answered by the
 server's queryable), never a fire-and-forget ``put``: the reply is the only proof the server
 applied and recorded an update (``shared/notes/ecosystem.md`` §0). Each state-changing request
-carries a client-chosen request id; when a call gets no reply in time it is retried with the
+carries a client-chosen request id; when an attempt gets no reply it is sent again with the
 *same* id, and the server answers a retried id it already applied with the original
-acknowledgement, so a retry never applies an update twice.
+acknowledgement, so a retry never applies an update twice (ids are remembered for ten minutes
+by default, across a ``--restore`` too).
+
+**Which replies count.** The client finds the map's server by its liveliness token
+``<prefix>/<map>/alive/<zid>`` and accepts a reply only when Zenoh's replier id is that
+``zid`` (and the ack names it); any other reply is counted in :attr:`MapClient.foreign_replies`
+and logged, never returned.
+
+**Waiting.** A call waits for the server up to its own ``timeout_s``, sending again with
+backoff (0.05 s doubling to 1 s) while nobody answers, so it resumes when a restarted server
+comes back. When the deadline passes it raises one of three :class:`mcsm.errors.Timeout`
+kinds that say why: :class:`~mcsm.errors.NoServer` (no live server token),
+:class:`~mcsm.errors.NoPermittedServer` (the server is alive but the request got no reply at
+all: an access-control list denies it) or ``Timeout`` itself (the server is alive but did not
+answer in time). Nothing here waits without a deadline.
 
 Errors the server reports come back as the same typed exception (``McsmError.from_dict``):
-``UnknownFrame``, ``SampleCountMismatch``, ``InvalidSamples``, ``BadMessage``, ... No reply
-after all attempts raises :class:`mcsm.errors.Timeout`; nothing here waits without a deadline.
+``UnknownFrame``, ``SampleCountMismatch``, ``InvalidSamples``, ``BadMessage``, ``Forbidden``,
+``RequestIdReused``, ...
 
 Example::
 
@@ -39,13 +53,24 @@ import numpy.typing as npt
 import zenoh
 from mcsm import wire
 from mcsm.connect import ZenohConfigLike, client_config
-from mcsm.errors import BadMessage, LimitExceeded, McsmError, Timeout
+from mcsm.errors import (
+    BadMessage,
+    LimitExceeded,
+    McsmError,
+    NoPermittedServer,
+    NoServer,
+    Timeout,
+)
 
 log = logging.getLogger(__name__)
 
 T = TypeVar("T")
 
 DEFAULT_TIMEOUT_S = 10.0
+BACKOFF_FIRST_S = 0.05
+BACKOFF_MAX_S = 1.0
+MIN_ATTEMPT_S = 0.02
+"""An attempt with less time left than this is not started (the call ends)."""
 
 
 class MapClient:
@@ -56,19 +81,30 @@ class MapClient:
     map : str
         Map name (``<prefix>/<map>/...`` keys).
     connect : str, optional
-        Server endpoint. ``None`` means ``tcp/127.0.0.1:7447`` unless ``zenoh_config`` names
-        endpoints; when both are given, ``connect`` wins.
+        Server endpoint. ``None`` means the default (``mcsm.connect.DEFAULT_ENDPOINT``) unless
+        ``zenoh_config`` (or ``ZENOH_CONFIG``) names endpoints; when both are given,
+        ``connect`` wins.
     zenoh_config : path, dict or zenoh.Config, optional
-        A full Zenoh config (JSON5 file, dict or Config) replacing the loopback defaults.
+        A full Zenoh config (JSON5 file, dict or Config) replacing the loopback defaults, e.g.
+        one of ``deploy/``'s role configs.
     timeout_s : float
-        Deadline of one attempt of one call, in seconds.
-    retries : int
-        Extra attempts after a call got no reply (same request id each time).
+        Deadline of one call, in seconds: the call keeps trying (same request id, backoff)
+        until it gets the server's answer or this much time has passed.
+    retries : int, optional
+        Ignored (calls retry until their deadline); accepted so older callers still run.
     prefix : str
         Key expression prefix (default ``mcsm``).
     sender : str, optional
         Name written into the server's recording for this client's inputs (default: the
         Zenoh session id).
+    namespace : str, optional
+        Send updates and removes on ``<prefix>/<map>/update/<namespace>`` and
+        ``remove/<namespace>``: the keys a robot's identity is granted by the shipped
+        access-control lists. The server then refuses frames outside the namespace
+        (``Forbidden``). ``None``: the unrestricted keys (admin, or no access control).
+    server_id : str, optional
+        Accept replies only from the server with this Zenoh id. ``None``: the one server whose
+        liveliness token is visible (several tokens for one map are refused as ambiguous).
 
     Raises
     ------
@@ -78,18 +114,27 @@ class MapClient:
 
     def __init__(self, map: str = wire.DEFAULT_MAP, connect: str | None = None,
                  zenoh_config: ZenohConfigLike = None, timeout_s: float = DEFAULT_TIMEOUT_S,
-                 *, retries: int = 2, prefix: str = wire.DEFAULT_PREFIX,
-                 sender: str | None = None) -> None:
+                 *, retries: int | None = None, prefix: str = wire.DEFAULT_PREFIX,
+                 sender: str | None = None, namespace: str | None = None,
+                 server_id: str | None = None) -> None:
+        del retries  # calls retry until their own deadline
         if not timeout_s > 0:
             raise ValueError("timeout_s must be positive")
         self.keys = wire.map_keys(map, prefix)
         self.timeout_s = float(timeout_s)
-        self.retries = max(0, int(retries))
+        self.namespace = wire.check_namespace(namespace) if namespace is not None else None
+        self._update_key = self.keys.update_as(namespace) if namespace else self.keys.update
+        self._remove_key = self.keys.remove_as(namespace) if namespace else self.keys.remove
+        self._pinned = server_id
+        self._server: str | None = server_id
+        self.foreign_replies = 0
+        """Replies from anyone but the map's server (ignored and logged)."""
         conf = client_config(connect, zenoh_config)
         try:
             self.session = zenoh.open(conf)
         except zenoh.ZError as exc:
-            raise Timeout(f"connect to {connect or 'the configured endpoints'} ({exc})",
+            why = str(exc).split(" at /", 1)[0]  # drop zenoh's source location
+            raise Timeout(f"connect to {connect or 'the configured endpoints'} ({why})",
                           self.timeout_s) from None
         self.sender = sender if sender is not None else str(self.session.zid())
         self._id_base = uuid.uuid4().hex[:16]
@@ -118,11 +163,36 @@ class MapClient:
         return f"{self._id_base}-{next(self._counter)}"
 
     # ---------------------------------------------------------------- RPC core
+    @property
+    def server_id(self) -> str | None:
+        """Zenoh id of the server this client last talked to (``None`` before the first call
+        or while no server is visible)."""
+        return self._server
+
+    def _resolve_server(self, timeout_s: float) -> str | None:
+        """The id of the map's one live server (liveliness token), or None if none is seen.
+
+        Raises
+        ------
+        McsmError
+            If several servers claim the map and none was pinned with ``server_id``.
+        """
+        ids = self.servers(timeout_s=max(0.05, min(1.0, timeout_s)))
+        if self._pinned is not None:
+            return self._pinned if self._pinned in ids else None
+        if len(ids) > 1:
+            raise McsmError(f"{len(ids)} servers claim map {self.map!r} ({', '.join(ids)}); "
+                            "pass server_id= to choose one (or fix the access control: only "
+                            "the server identity may declare tokens on the map's keys)",
+                            servers=",".join(ids))
+        return ids[0] if ids else None
+
     def _call(self, key: str, payload: bytes, decode: Callable[[bytes], T], what: str,
               timeout_s: float | None = None) -> T:
-        """Send ``payload`` to ``key`` and return the decoded single reply, retrying on silence.
+        """Send ``payload`` to ``key`` until the map's server answers or the deadline passes.
 
-        The same payload (hence the same request id) is sent on every attempt.
+        The same payload (hence the same request id) is sent every time, with backoff
+        between attempts that got no answer.
         """
         if self._closed:
             raise McsmError("the client is closed")
@@ -130,54 +200,116 @@ class MapClient:
             # Zenoh would drop it silently (the caller would only see a Timeout)
             raise LimitExceeded("request bytes", len(payload), wire.MAX_PAYLOAD_BYTES)
         t = self.timeout_s if timeout_s is None else float(timeout_s)
-        attempts = self.retries + 1
-        for attempt in range(attempts):
-            got = self._attempt(key, payload, t)
-            if got is None:
-                log.warning("%s: no reply within %.3g s (attempt %d of %d)", what, t,
-                            attempt + 1, attempts)
-                continue
-            ok, data = got
-            if ok:
-                return decode(data)
-            raise wire.decode_error(data)
-        raise Timeout(what, t)
+        deadline = time.monotonic() + t
+        delay = BACKOFF_FIRST_S
+        state, last_server = "none", ""
+        # time spent in each state; the one that took most of the deadline names the failure
+        spent = {"none": 0.0, "silent": 0.0, "slow": 0.0}
+        attempt = 0
+        while True:
+            t_iter = time.monotonic()
+            left = deadline - t_iter
+            if left < MIN_ATTEMPT_S:
+                break
+            if self._server is None:
+                self._server = self._resolve_server(left)
+            left = deadline - time.monotonic()
+            if self._server is not None and left >= MIN_ATTEMPT_S:
+                attempt += 1
+                last_server = self._server
+                got = self._attempt(key, payload, left, self._server)
+                if isinstance(got, tuple):
+                    ok, data = got
+                    if ok:
+                        return decode(data)
+                    raise wire.decode_error(data)
+                state = got  # "slow" (zenoh's own timeout) or "silent" (no reply at all)
+                if got == "silent" and self._pinned is None:
+                    self._server = None  # it may have restarted under a new id
+            else:
+                state = "none"
+            left = deadline - time.monotonic()
+            if left >= MIN_ATTEMPT_S:
+                log.info("%s: %s; trying again in %.2g s (%.3g s left of %.3g s)", what,
+                         {"none": "no live server", "slow": "no reply yet",
+                          "silent": "no reply at all"}[state], min(delay, left), left, t)
+                time.sleep(min(delay, left))
+                delay = min(2 * delay, BACKOFF_MAX_S)
+            spent[state] += time.monotonic() - t_iter
+        cause = max(spent, key=lambda k: spent[k]) if attempt else "none"
+        log.info("%s: gave up after %.3g s (%d attempts; %s)", what, t, attempt,
+                 ", ".join(f"{k} {v:.2g} s" for k, v in spent.items()))
+        if cause == "none":
+            raise NoServer(self.map, self.keys.alive_any, t)
+        if cause == "silent":
+            raise NoPermittedServer(key, last_server, t)
+        raise Timeout(f"{what} (server {last_server} is alive but did not answer)", t)
 
-    def _attempt(self, key: str, payload: bytes, timeout_s: float) -> tuple[bool, bytes] | None:
-        """One ``get``; ``(True, payload)``, ``(False, error payload)`` or ``None`` (silence)."""
+    def _attempt(self, key: str, payload: bytes, timeout_s: float,
+                 server: str) -> tuple[bool, bytes] | str:
+        """One ``get`` to every queryable on ``key``; the server's ``(ok, payload)``, or
+        ``"slow"`` (Zenoh's own timeout reply) or ``"silent"`` (no reply at all)."""
         replies = self.session.get(key, payload=payload, timeout=timeout_s,
-                                   congestion_control=zenoh.CongestionControl.BLOCK)
-        result: tuple[bool, bytes] | None = None
+                                   congestion_control=zenoh.CongestionControl.BLOCK,
+                                   target=zenoh.QueryTarget.ALL,
+                                   consolidation=zenoh.ConsolidationMode.NONE)
+        outcome = "silent"
         # The handler ends when the query is finalised (every replier done, or zenoh's own
         # timeout); the extra slack only guards against a finalisation that never comes.
-        deadline = time.monotonic() + timeout_s + 2.0
+        t0 = time.monotonic()
+        deadline = t0 + timeout_s + 2.0
         while time.monotonic() < deadline:
             try:
                 reply = replies.recv()
             except zenoh.ZError:  # "channel is empty and closed": the query is finalised
                 break
+            replier = reply.replier_id
+            from_server = replier is not None and str(replier.zid) == server
             if reply.ok is not None:
-                if result is None or not result[0]:
-                    result = (True, reply.ok.payload.to_bytes())
+                data = reply.ok.payload.to_bytes()
+                if from_server:
+                    return True, data
+                self._foreign(key, replier, "reply")
                 continue
             err_payload = reply.err.payload.to_bytes() if reply.err is not None else b""
             try:
                 wire.decode_error(err_payload)
             except McsmError:
-                # not an mcsm error reply: zenoh's "Timeout" or a transport error
+                # not an mcsm error reply: zenoh's own "Timeout" (the server is slow)
                 log.debug("%s: non-mcsm error reply %r", key, err_payload[:64])
+                if replier is None:
+                    outcome = "slow"
                 continue
-            if result is None:
-                result = (False, err_payload)
-        return result
+            if from_server:
+                return False, err_payload
+            self._foreign(key, replier, "error reply")
+        if outcome == "silent" and time.monotonic() - t0 >= 0.9 * timeout_s:
+            outcome = "slow"  # it ran out its time: that is not the instant silence of a denial
+        return outcome
+
+    def _foreign(self, key: str, replier: Any, what: str) -> None:
+        self.foreign_replies += 1
+        log.warning("%s: ignored a %s from %s, not the map's server %s (%d so far)", key,
+                    what, replier.zid if replier is not None else "an unknown replier",
+                    self._server, self.foreign_replies)
+
+    def _decode_ack(self, data: bytes) -> wire.Ack:
+        ack = wire.decode_ack(data)
+        if ack.server and ack.server != self._server:
+            raise BadMessage("ack.server", f"the map's server {self._server}", ack.server)
+        return ack
 
     # ---------------------------------------------------------------- operations
     def update(self, a: str, b: str, samples: npt.ArrayLike, *,
-               request_id: str | None = None, timeout_s: float | None = None) -> wire.Ack:
+               request_id: str | None = None, timeout_s: float | None = None,
+               trusted: bool = False, stamp_ns: int | None = None) -> wire.Ack:
         """Apply the AT ``a -> b`` given as samples ``(N, 7)`` (``x y z qw qx qy qz``).
 
         Returns the server's :class:`mcsm.wire.Ack` (sequence number, kind: ``new_component``,
-        ``new_frame``, ``join`` or ``loop_closure``, component root, frames added).
+        ``new_frame``, ``join``, ``loop_closure`` or ``rejected``, component root, frames
+        added) with its ``verdict`` (status, the gate's NIS, dof and threshold, reason).
+        ``trusted`` bypasses the server's loop-closure gate; ``stamp_ns`` is the source's
+        measurement time, recorded and returned in the verdict.
 
         Raises
         ------
@@ -190,22 +322,24 @@ class MapClient:
         arr = np.asarray(samples, dtype=np.float64)
         if arr.ndim != 2 or arr.shape[1] != 7:
             raise BadMessage("samples", "shape (N, 7)", arr.shape)
-        return self._update(a, b, arr, request_id, timeout_s)
+        return self._update(a, b, arr, request_id, timeout_s, trusted, stamp_ns)
 
     def update_point(self, a: str, b: str, samples3: npt.ArrayLike, *,
-                     request_id: str | None = None,
-                     timeout_s: float | None = None) -> wire.Ack:
+                     request_id: str | None = None, timeout_s: float | None = None,
+                     trusted: bool = False, stamp_ns: int | None = None) -> wire.Ack:
         """Apply an observation of point frame ``b`` from full frame ``a``: samples ``(N, 3)``."""
         arr = np.asarray(samples3, dtype=np.float64)
         if arr.ndim != 2 or arr.shape[1] != 3:
             raise BadMessage("samples", "shape (N, 3)", arr.shape)
-        return self._update(a, b, arr, request_id, timeout_s)
+        return self._update(a, b, arr, request_id, timeout_s, trusted, stamp_ns)
 
     def _update(self, a: str, b: str, arr: np.ndarray, request_id: str | None,
-                timeout_s: float | None) -> wire.Ack:
+                timeout_s: float | None, trusted: bool = False,
+                stamp_ns: int | None = None) -> wire.Ack:
         rid = request_id or self.new_request_id()
-        payload = wire.encode_update(rid, a, b, arr, sender=self.sender)
-        return self._call(self.keys.update, payload, wire.decode_ack, f"update {a}->{b}",
+        payload = wire.encode_update(rid, a, b, arr, sender=self.sender, trusted=trusted,
+                                     stamp_ns=stamp_ns)
+        return self._call(self._update_key, payload, self._decode_ack, f"update {a}->{b}",
                           timeout_s)
 
     def remove(self, frame: str, *, request_id: str | None = None,
@@ -213,8 +347,35 @@ class MapClient:
         """Remove ``frame`` from the map (other estimates and correlations unchanged)."""
         rid = request_id or self.new_request_id()
         payload = wire.encode_remove(rid, frame, sender=self.sender)
-        return self._call(self.keys.remove, payload, wire.decode_ack, f"remove {frame}",
+        return self._call(self._remove_key, payload, self._decode_ack, f"remove {frame}",
                           timeout_s)
+
+    def retract(self, target: str, *, request_id: str | None = None,
+                timeout_s: float | None = None) -> wire.Ack:
+        """Take back the update whose request id is ``target``: the server restores its last
+        snapshot before it and applies every later input again without it (bit-identical to a
+        map that never had it). The ack's verdict is the target's (``retracted``); events
+        list the verdicts that changed. Refused (``InvalidOperation``) when the target is not
+        an update of the retract window or is already retracted."""
+        rid = request_id or self.new_request_id()
+        payload = wire.encode_retract(rid, target, sender=self.sender)
+        return self._call(self.keys.retract, payload, self._decode_ack, f"retract {target}",
+                          timeout_s)
+
+    def reinstate(self, target: str, *, request_id: str | None = None,
+                  timeout_s: float | None = None) -> wire.Ack:
+        """Put a retracted update back (as if it had always been applied, gate bypassed)."""
+        rid = request_id or self.new_request_id()
+        payload = wire.encode_retract(rid, target, sender=self.sender)
+        return self._call(self.keys.reinstate, payload, self._decode_ack,
+                          f"reinstate {target}", timeout_s)
+
+    def verdict(self, target: str, *, timeout_s: float | None = None) -> wire.Verdict | None:
+        """The current verdict of a past request (None for a remove or an import)."""
+        payload = wire.encode_verdict_request(self.new_request_id(), target)
+        ack = self._call(self.keys.verdict, payload, self._decode_ack, f"verdict {target}",
+                         timeout_s)
+        return ack.verdict
 
     def query(self, a: str, b: str, *, timeout_s: float | None = None) -> np.ndarray:
         """Samples ``(N, 7)`` of the AT ``a -> b`` (a new array; row order is the map's).
@@ -259,21 +420,12 @@ class MapClient:
         new component; its frame names must all be new (``FrameExists`` otherwise)."""
         rid = request_id or self.new_request_id()
         payload = wire.encode_submap_import(rid, submap, sender=self.sender)
-        return self._call(self.keys.submap, payload, wire.decode_ack, "import submap",
+        return self._call(self.keys.submap, payload, self._decode_ack, "import submap",
                           timeout_s)
 
     def wait_for_server(self, timeout_s: float = 10.0) -> wire.MapInfo:
-        """Poll ``info`` until the server answers or ``timeout_s`` passes (then ``Timeout``)."""
-        deadline = time.monotonic() + timeout_s
-        while True:
-            left = deadline - time.monotonic()
-            if left <= 0:
-                raise Timeout(f"wait for server of map {self.map!r}", timeout_s)
-            try:
-                return self._call(self.keys.info, wire.encode_info(self.new_request_id()),
-                                  wire.decode_info_reply, "info", min(1.0, max(left, 0.05)))
-            except Timeout:
-                continue
+        """``info``, waiting up to ``timeout_s`` for the server (``NoServer``/``Timeout``)."""
+        return self.info(timeout_s=timeout_s)
 
     def servers(self, timeout_s: float = 1.0) -> list[str]:
         """Ids of the live servers serving this map (their liveliness tokens)."""

@@ -44,12 +44,38 @@ class MapTarget:
     target : StochasticMap or MapClient (or a MapTarget, returned unwrapped)
         Anything with ``update``/``remove``/``marginal``/``query``; a client is recognised by
         its ``update_point`` method.
+    prefix : str, optional
+        A frame namespace such as ``robot1`` or ``robot1/run2``: every frame name given to
+        this object means ``<prefix>/<name>`` in the map, and :meth:`frames` lists only that
+        namespace's frames (without the prefix). ``None`` keeps a wrapped MapTarget's prefix
+        (default ``""``: names as given).
     """
 
-    def __init__(self, target: Any) -> None:
+    def __init__(self, target: Any, prefix: str | None = None) -> None:
+        inner: str = target.prefix if isinstance(target, MapTarget) else ""
         self.target: Any = target.target if isinstance(target, MapTarget) else target
-        self.remote = hasattr(target, "update_point")
+        self.prefix: str = inner if prefix is None else prefix.strip("/")
+        self.remote = hasattr(self.target, "update_point")
         self._frames: set[str] | None = None
+
+    def name(self, frame: str) -> str:
+        """The map's name of ``frame`` (``<prefix>/<frame>``)."""
+        return f"{self.prefix}/{frame}" if self.prefix else frame
+
+    def _all_frames(self) -> set[str]:
+        if self.remote:
+            if self._frames is None:
+                self._frames = set(self.target.info().frames)
+            return self._frames
+        return set(self.target.frames())
+
+    def existing(self) -> list[str]:
+        """The map's frames inside this target's namespace (all frames without a ``/`` when
+        there is no prefix), full names, sorted: what a fresh run must not write into."""
+        if self.prefix:
+            head = self.prefix + "/"
+            return sorted(f for f in self._all_frames() if f.startswith(head))
+        return sorted(f for f in self._all_frames() if "/" not in f)
 
     @property
     def n_samples(self) -> int:
@@ -61,6 +87,7 @@ class MapTarget:
     def update(self, a: str, b: str, samples: Array, /) -> str:
         """Apply samples ``(N, 7)`` (AT a→b) or ``(N, 3)`` (point b seen from a); the kind."""
         self._frames = None
+        a, b = self.name(a), self.name(b)
         if self.remote and samples.ndim == 2 and samples.shape[1] == 3:
             r = self.target.update_point(a, b, samples)
         else:
@@ -70,40 +97,41 @@ class MapTarget:
     def remove(self, frame: str, /) -> None:
         """Remove a frame."""
         self._frames = None
-        self.target.remove(frame)
+        self.target.remove(self.name(frame))
 
     def marginal(self, a: str, b: str, /) -> tuple[Array, Array]:
         """Mean ``(7,)`` and tangent covariance ``(6, 6)`` of a→b."""
-        mean, cov = self.target.marginal(a, b)
+        mean, cov = self.target.marginal(self.name(a), self.name(b))
         return np.asarray(mean, dtype=np.float64), np.asarray(cov, dtype=np.float64)
 
     def query(self, a: str, b: str, /) -> Array:
         """Samples ``(N, 7)`` of a→b."""
-        return np.asarray(self.target.query(a, b), dtype=np.float64)
+        return np.asarray(self.target.query(self.name(a), self.name(b)), dtype=np.float64)
 
     def frames(self) -> list[str]:
-        """All frame names (one ``info`` call for a remote map, cached until the next change)."""
-        if self.remote:
-            if self._frames is None:
-                self._frames = set(self.target.info().frames)
-            return sorted(self._frames)
-        return list(self.target.frames())
+        """All frame names (one ``info`` call for a remote map, cached until the next change);
+        with a prefix, that namespace's frames without the prefix."""
+        names = self._all_frames()
+        if self.prefix:
+            head = self.prefix + "/"
+            return sorted(f[len(head):] for f in names if f.startswith(head))
+        return sorted(names) if self.remote else list(self.target.frames())
 
     def __contains__(self, frame: object, /) -> bool:
+        if not isinstance(frame, str):
+            return False
         if not self.remote:
-            return frame in self.target
-        if self._frames is None:
-            self._frames = set(self.target.info().frames)
-        return frame in self._frames
+            return self.name(frame) in self.target
+        return self.name(frame) in self._all_frames()
 
     def export_component(self, frame: str) -> Any:
-        """The core ``Submap`` of ``frame``'s component."""
+        """The core ``Submap`` of ``frame``'s component (full frame names)."""
         if self.remote:
-            return self.target.export_submap(frame)
-        return self.target.export_component(frame)
+            return self.target.export_submap(self.name(frame))
+        return self.target.export_component(self.name(frame))
 
     def import_component(self, submap: Any) -> str:
-        """Add an exported component; returns the result kind (``"import"``)."""
+        """Add an exported component as is; returns the result kind (``"import"``)."""
         self._frames = None
         if self.remote:
             return str(self.target.import_submap(submap).kind)

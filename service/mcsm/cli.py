@@ -2,7 +2,7 @@
 
 ::
 
-    mcsm serve [--listen tcp/127.0.0.1:7447] [--map NAME]... [--samples N]
+    mcsm serve [--listen tcp/127.0.0.1:7457] [--map NAME]... [--samples N]
                [--method joint|paper] [--record PATH.mcap] [--restore PATH.mcap]
                [--zenoh-config FILE]
     mcsm replay FILE.mcap
@@ -64,6 +64,11 @@ def _parser() -> argparse.ArgumentParser:
                    help="cross-covariance estimator of the joint update: 'direct' (default) or "
                         "'endpoints' (through the loop's two endpoint frames; better on pose "
                         "graphs, with --inflation 1.002 in 3-D; tangent space only)")
+    s.add_argument("--gate", type=_gate, default=None, metavar="Q|none",
+                   help="loop-closure gate: reject a loop closure whose normalised innovation "
+                        "exceeds the chi-square quantile Q (e.g. 0.99) for its dof; the map is "
+                        "unchanged and the ack's verdict says why (default none; a request "
+                        "marked trusted bypasses it)")
     s.add_argument("--record", type=Path, default=None, metavar="PATH.mcap",
                    help="new recording file (default recordings/run-<UTC time>.mcap)")
     s.add_argument("--restore", type=Path, default=None, metavar="PATH.mcap",
@@ -75,6 +80,18 @@ def _parser() -> argparse.ArgumentParser:
                    help="requests waiting for the worker before 'busy' errors")
     s.add_argument("--fsync", action="store_true",
                    help="fsync the recording before each ack (survives power loss; slow)")
+    s.add_argument("--snapshot-every", type=int, default=100, metavar="K",
+                   help="keep an in-memory snapshot of each map every K operations "
+                        "(default 100); retract/reinstate restore one and apply the later "
+                        "inputs again")
+    s.add_argument("--snapshots-kept", type=int, default=5, metavar="S",
+                   help="snapshots kept per map (default 5): updates of the last (S-1)*K to "
+                        "S*K operations can be retracted")
+    s.add_argument("--id-ttl-s", type=float, default=600.0, metavar="S",
+                   help="remember each applied request id this long, so a retry (also after "
+                        "a --restore) is not applied twice (default 600)")
+    s.add_argument("--id-memory", type=int, default=100_000, metavar="K",
+                   help="remember at most this many request ids per map (default 100000)")
     s.add_argument("--log-level", default="INFO")
 
     r = sub.add_parser("replay", help="rebuild the maps of a recording and check its digests")
@@ -93,6 +110,10 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from mcsm.connect import flags_after_command
+
+    # `mcsm --listen X serve` works like `mcsm serve --listen X`
+    argv = flags_after_command(sys.argv[1:] if argv is None else list(argv), "serve")
     args = _parser().parse_args(argv)
     try:
         if args.command == "serve":
@@ -122,6 +143,18 @@ def _shrink(text: str) -> float | None:
             from None
 
 
+def _gate(text: str) -> float | None:
+    if text == "none":
+        return None
+    try:
+        q = float(text)
+    except ValueError:
+        q = -1.0
+    if not 0.0 < q < 1.0:
+        raise argparse.ArgumentTypeError(f"expected a quantile in (0, 1) or 'none', got {text!r}")
+    return q
+
+
 def _inflation(text: str) -> float | str:
     if text == "adaptive":
         return text
@@ -135,7 +168,7 @@ def _inflation(text: str) -> float | str:
 def serve(args: argparse.Namespace) -> int:
     import zenoh
 
-    from mcsm.connect import listen_endpoints, server_config
+    from mcsm.connect import listen_endpoints, security_warning, server_config
     from mcsm.recording import progress_bar
     from mcsm.server import Server, ServerOptions
 
@@ -156,9 +189,12 @@ def serve(args: argparse.Namespace) -> int:
         maps=list(dict.fromkeys(maps)), prefix=args.prefix,
         map_options={"n_samples": args.samples, "method": args.method, "space": args.space,
                      "analysis": args.analysis, "shrink": args.shrink,
-                     "inflation": args.inflation, "gain": args.gain},
+                     "inflation": args.inflation, "gain": args.gain,
+                     **({"gate": args.gate} if args.gate is not None else {})},
         record=record, restore=args.restore, checkpoint_every=max(1, args.checkpoint_every),
-        queue_size=args.queue_size, fsync=args.fsync)
+        queue_size=args.queue_size, fsync=args.fsync, lru_size=max(1, args.id_memory),
+        id_ttl_s=max(0.0, args.id_ttl_s), snapshot_every=max(1, args.snapshot_every),
+        snapshots_kept=max(1, args.snapshots_kept))
     try:
         for name in opts.maps:
             wire.map_keys(name, opts.prefix)
@@ -166,6 +202,9 @@ def serve(args: argparse.Namespace) -> int:
     except (McsmError, zenoh.ZError, OSError) as exc:
         print(f"mcsm serve: {exc}", file=sys.stderr)
         return 2
+    warning = security_warning(conf)
+    if warning is not None:
+        log.warning("%s", warning)
     try:
         session = zenoh.open(conf)
     except zenoh.ZError as exc:

@@ -1,13 +1,19 @@
 """Connection flags and Zenoh configs, shared by ``mcsm``, ``mcsm-client`` and every example.
 
 Defaults work on one machine with no router: the server is an embedded Zenoh *peer* listening
-on ``tcp/127.0.0.1:7447``; clients open a Zenoh *client* session connected to it. Both turn off
-multicast and gossip scouting (nothing leaves loopback), and the server turns off shared memory
-(it bypasses ``max_message_size``), turns off batching (a 56 KB reply takes ~1.3 ms batched vs
-~0.2 ms not) and caps incoming messages at 8 MiB (``shared/notes/ecosystem.md`` §0).
+on ``tcp/127.0.0.1:7457`` (not 7447, zenohd's own port, so a Zenoh router and an mcsm server
+can run on one host without a clash); clients open a Zenoh *client* session connected to it.
+Both turn off multicast and gossip scouting (nothing leaves loopback), and the server turns off
+shared memory (it bypasses ``max_message_size``), turns off batching (a 56 KB reply takes
+~1.3 ms batched vs ~0.2 ms not) and caps incoming messages at 8 MiB
+(``shared/notes/ecosystem.md`` §0).
 
-A ``--zenoh-config FILE`` (JSON5) replaces these defaults entirely, for real deployments
-(routers, TLS, access control); an explicit ``--connect``/``--listen`` is still applied on top.
+A ``--zenoh-config FILE`` (JSON5), or else the file named by the ``ZENOH_CONFIG`` environment
+variable (as Zenoh's own tools read it), replaces these defaults entirely, for real deployments
+(routers, TLS, access control: ``deploy/``); an explicit ``--connect``/``--listen`` is still
+applied on top. Relative file paths inside such a config (the users file, certificates and
+keys) are resolved against the config file's directory, so a deployment directory can be
+used from anywhere.
 
 Example::
 
@@ -21,14 +27,20 @@ Example::
 from __future__ import annotations
 
 import argparse
+import ipaddress
 import json
 import os
+import re
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any, Literal
 
 import zenoh
 
-DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+from mcsm.errors import BadMessage
+
+DEFAULT_PORT = 7457
+DEFAULT_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_PORT}"
 DEFAULT_MAP = "default"
 DEFAULT_PREFIX = "mcsm"
 MAX_MESSAGE_BYTES = 8 * 1024 * 1024
@@ -38,47 +50,145 @@ ZenohConfigLike = str | os.PathLike[str] | Mapping[str, Any] | zenoh.Config | No
 
 
 def add_connection_args(parser: argparse.ArgumentParser,
-                        role: Literal["client", "server"] = "client") -> None:
+                        role: Literal["client", "server"] = "client", *,
+                        suppress: bool = False) -> None:
     """Add ``--connect`` (client) or ``--listen`` (server), ``--map``, ``--prefix``,
     ``--zenoh-config`` to ``parser``.
 
     For the server ``--map`` may be repeated (one server, several maps); for a client it names
     the one map to talk to. Read the values back with :func:`client_kwargs` or directly
     (``args.connect``, ``args.listen``, ``args.map``, ``args.prefix``, ``args.zenoh_config``).
+    ``suppress=True`` leaves absent flags out of the namespace, so the same flags can be
+    added to a parser and its subcommands' parsers (``mcsm-client --connect X info`` and
+    ``mcsm-client info --connect X``); then call :func:`fill_connection_defaults`.
     """
     g = parser.add_argument_group("connection")
+    d: dict[str, Any] = {"default": argparse.SUPPRESS} if suppress else {}
     if role == "server":
-        g.add_argument("--listen", default=None, metavar="ENDPOINT",
+        g.add_argument("--listen", metavar="ENDPOINT", **(d or {"default": None}),
                        help=f"Zenoh endpoint to listen on (default {DEFAULT_ENDPOINT}, "
                             "or the config file's)")
-        g.add_argument("--map", action="append", default=None, metavar="NAME",
+        g.add_argument("--map", action="append", metavar="NAME", **(d or {"default": None}),
                        help=f"map to serve; repeat for several (default {DEFAULT_MAP!r})")
     else:
-        g.add_argument("--connect", default=None, metavar="ENDPOINT",
-                       help=f"server endpoint (default {DEFAULT_ENDPOINT}, "
+        g.add_argument("--connect", metavar="ENDPOINT", **(d or {"default": None}),
+                       help=f"server endpoint, e.g. tcp/HOST:PORT (default {DEFAULT_ENDPOINT}, "
                             "or the config file's)")
-        g.add_argument("--map", default=DEFAULT_MAP, metavar="NAME",
+        g.add_argument("--map", metavar="NAME", **(d or {"default": DEFAULT_MAP}),
                        help=f"map name (default {DEFAULT_MAP!r})")
-    g.add_argument("--prefix", default=DEFAULT_PREFIX,
+        g.add_argument("--namespace", metavar="NS", **(d or {"default": None}),
+                       help="write through the keys update/NS and remove/NS (a robot "
+                            "identity's keys under the shipped access control; frames must "
+                            "be NS/...); sim, play and multirobot write NS/... frames (NS may "
+                            "be robot1/run2)")
+    g.add_argument("--prefix", **(d or {"default": DEFAULT_PREFIX}),
                    help=f"key expression prefix (default {DEFAULT_PREFIX!r})")
-    g.add_argument("--zenoh-config", default=None, metavar="FILE",
-                   help="Zenoh JSON5 config file; replaces the loopback defaults")
+    g.add_argument("--zenoh-config", metavar="FILE", **(d or {"default": None}),
+                   help="Zenoh JSON5 config file (default: $ZENOH_CONFIG if set); replaces "
+                        "the loopback defaults")
+
+
+def fill_connection_defaults(args: argparse.Namespace,
+                             role: Literal["client", "server"] = "client") -> None:
+    """Set the defaults of connection flags that were given nowhere (see ``suppress``)."""
+    defaults: dict[str, Any] = {"prefix": DEFAULT_PREFIX, "zenoh_config": None}
+    if role == "server":
+        defaults.update(listen=None, map=None)
+    else:
+        defaults.update(connect=None, map=DEFAULT_MAP, namespace=None)
+    for k, v in defaults.items():
+        if not hasattr(args, k):
+            setattr(args, k, v)
+
+
+SERVER_FLAGS = ("--listen", "--map", "--prefix", "--zenoh-config")
+
+
+def flags_after_command(argv: list[str], command: str,
+                        flags: tuple[str, ...] = SERVER_FLAGS) -> list[str]:
+    """``argv`` with the given value flags written before ``command`` moved after it, so
+    ``mcsm --listen X serve`` parses like ``mcsm serve --listen X``. Anything else is left
+    where it is (argparse then reports it as usual)."""
+    if command not in argv:
+        return list(argv)
+    at = argv.index(command)
+    moved: list[str] = []
+    head: list[str] = []
+    i = 0
+    while i < at:
+        tok = argv[i]
+        name = tok.split("=", 1)[0]
+        if name in flags and "=" in tok:
+            moved.append(tok)
+        elif name in flags and i + 1 < at:
+            moved += [tok, argv[i + 1]]
+            i += 1
+        else:
+            head.append(tok)
+        i += 1
+    return [*head, command, *moved, *argv[at + 1:]]
 
 
 def client_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     """``MapClient`` keyword arguments from flags added by :func:`add_connection_args`."""
-    return {"map": args.map, "connect": args.connect, "zenoh_config": args.zenoh_config,
-            "prefix": args.prefix}
+    kw = {"map": args.map, "connect": args.connect, "zenoh_config": args.zenoh_config,
+          "prefix": args.prefix}
+    if getattr(args, "namespace", None):
+        # "robot1/run2": the keys are robot1's; the frames of sim/play/multirobot robot1/run2/...
+        kw["namespace"] = str(args.namespace).split("/", 1)[0]
+    return kw
+
+
+_ENDPOINT_RE = re.compile(r"[a-z][a-z0-9-]*/\S+")
+_PORTED = ("tcp", "udp", "tls", "quic", "ws")
+
+
+def check_endpoint(endpoint: str, flag: str = "--connect") -> str:
+    """Return ``endpoint`` if it looks like a Zenoh endpoint (``tcp/HOST:PORT``), else raise.
+
+    Raises
+    ------
+    BadMessage
+        With a one-line message naming the flag and an example (``127.0.0.1:7457`` without
+        ``tcp/`` is the common mistake).
+    """
+    ok = isinstance(endpoint, str) and _ENDPOINT_RE.fullmatch(endpoint) is not None
+    if ok:
+        proto, _, addr = endpoint.partition("/")
+        addr = addr.split("#", 1)[0].split("?", 1)[0]
+        ok = proto not in _PORTED or re.search(r":\d{1,5}$", addr) is not None
+    if not ok:
+        raise BadMessage(flag, f"a Zenoh endpoint <protocol>/<address>, e.g. "
+                               f"tcp/127.0.0.1:{DEFAULT_PORT} or tls/robot-host:{DEFAULT_PORT}",
+                         repr(endpoint))
+    return endpoint
+
+
+_PATH_KEYS = ("transport/auth/usrpwd/dictionary_file", "transport/link/tls/root_ca_certificate",
+              "transport/link/tls/listen_private_key", "transport/link/tls/listen_certificate",
+              "transport/link/tls/connect_private_key",
+              "transport/link/tls/connect_certificate")
 
 
 def _load(zenoh_config: ZenohConfigLike) -> zenoh.Config | None:
     if zenoh_config is None:
-        return None
+        env = os.environ.get("ZENOH_CONFIG")
+        if not env:
+            return None
+        zenoh_config = env
     if isinstance(zenoh_config, zenoh.Config):
         return zenoh_config
     if isinstance(zenoh_config, Mapping):
         return zenoh.Config.from_json5(json.dumps(dict(zenoh_config)))
-    return zenoh.Config.from_file(os.fspath(zenoh_config))
+    path = Path(os.fspath(zenoh_config))
+    if not path.is_file():
+        raise BadMessage("--zenoh-config", "a readable Zenoh JSON5 file", str(path))
+    c = zenoh.Config.from_file(str(path))
+    for key in _PATH_KEYS:
+        val = json.loads(c.get_json(key))
+        if isinstance(val, str) and val and not Path(val).is_absolute():
+            c.insert_json5(key, json.dumps(str((path.parent / val).resolve())))
+    return c
 
 
 def _no_scouting(c: zenoh.Config) -> None:
@@ -93,7 +203,7 @@ def client_config(connect: str | None = None, zenoh_config: ZenohConfigLike = No
     Parameters
     ----------
     connect : str, optional
-        Endpoint of the server (``tcp/127.0.0.1:7447`` when neither this nor a config is given).
+        Endpoint of the server (``tcp/127.0.0.1:7457`` when neither this nor a config is given).
         Applied on top of ``zenoh_config`` when both are given.
     zenoh_config : path, dict or zenoh.Config, optional
         A full Zenoh config (JSON5 file path, a dict of the same structure, or a Config). It
@@ -109,7 +219,7 @@ def client_config(connect: str | None = None, zenoh_config: ZenohConfigLike = No
         c.insert_json5("connect/timeout_ms", str(int(connect_timeout_ms)))
         connect = connect or DEFAULT_ENDPOINT
     if connect:
-        c.insert_json5("connect/endpoints", json.dumps([connect]))
+        c.insert_json5("connect/endpoints", json.dumps([check_endpoint(connect)]))
     return c
 
 
@@ -117,7 +227,7 @@ def server_config(listen: str | None = None, zenoh_config: ZenohConfigLike = Non
                   max_message_bytes: int = MAX_MESSAGE_BYTES) -> zenoh.Config:
     """Zenoh config of the server's embedded peer.
 
-    Defaults: mode peer, listen on ``listen`` (``tcp/127.0.0.1:7447``), connect nowhere,
+    Defaults: mode peer, listen on ``listen`` (``tcp/127.0.0.1:7457``), connect nowhere,
     multicast and gossip scouting off, shared memory off, batching off,
     ``transport/link/rx/max_message_size`` = ``max_message_bytes``. A ``zenoh_config``
     replaces them all; ``listen``, when given, is applied on top.
@@ -133,7 +243,7 @@ def server_config(listen: str | None = None, zenoh_config: ZenohConfigLike = Non
         c.insert_json5("transport/link/rx/max_message_size", str(int(max_message_bytes)))
         listen = listen or DEFAULT_ENDPOINT
     if listen:
-        c.insert_json5("listen/endpoints", json.dumps([listen]))
+        c.insert_json5("listen/endpoints", json.dumps([check_endpoint(listen, "--listen")]))
     return c
 
 
@@ -144,3 +254,35 @@ def listen_endpoints(c: zenoh.Config) -> list[str]:
         mode = json.loads(c.get_json("mode") or "null") or "peer"
         raw = raw.get(mode, [])
     return [str(e) for e in raw]
+
+
+def _loopback(endpoint: str) -> bool:
+    proto, _, addr = endpoint.partition("/")
+    if proto.startswith("unix"):
+        return True
+    host = addr.split("#", 1)[0].split("?", 1)[0].rsplit(":", 1)[0].strip("[]")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:  # a host name: assume it is reachable from the network
+        return False
+
+
+def security_warning(c: zenoh.Config) -> str | None:
+    """One line warning about a server config reachable off this host without
+    authentication (or without access control), or None when there is nothing to say."""
+    exposed = [e for e in listen_endpoints(c) if not _loopback(e)]
+    if not exposed:
+        return None
+    usrpwd = json.loads(c.get_json("transport/auth/usrpwd/dictionary_file")) is not None
+    mtls = json.loads(c.get_json("transport/link/tls/enable_mtls")) is True
+    acl = json.loads(c.get_json("access_control/enabled")) is True
+    where = " ".join(exposed)
+    if not (usrpwd or mtls):
+        return (f"listening on {where} without authentication: anyone who reaches it can "
+                "read and write every map (use a config from deploy/, docs/deploy.md)")
+    if not acl:
+        return (f"listening on {where} without access control: every authenticated "
+                "identity can write every map (docs/deploy.md)")
+    return None

@@ -118,6 +118,32 @@ class Busy(LimitExceeded):
         super().__init__("request queue length", queue_length, limit)
 
 
+class RequestIdReused(McsmError):
+    """A request id the server remembers was sent again with a *different* request.
+
+    Nothing was applied; the remembered request keeps its ack. Send the new request with a
+    fresh id (``MapClient`` makes unique ids unless told one).
+    """
+
+    def __init__(self, request_id: str, seq: int) -> None:
+        super().__init__(f"request id {request_id!r} was already used for another request "
+                         f"(applied as seq {seq}); use a fresh id", request_id=request_id,
+                         seq=seq)
+
+
+class Forbidden(McsmError):
+    """A write outside the namespace the request's key grants (``<prefix>/<map>/update/<ns>``).
+
+    The access-control list lets a robot's identity use only its own key, so the key names
+    the writer; the server refuses frames outside that namespace. Nothing was applied.
+    """
+
+    def __init__(self, key: str, frame: str, namespace: str, reason: str) -> None:
+        super().__init__(f"{reason}: frame {frame!r} is not in namespace {namespace!r} "
+                         f"(key {key})", key=key, frame=frame, namespace=namespace,
+                         reason=reason)
+
+
 class InternalError(McsmError):
     """An unexpected server-side failure (logged there with its traceback); nothing applied."""
 
@@ -129,12 +155,39 @@ class Timeout(McsmError):
     """A request got no answer in time (client side)."""
 
     def __init__(self, what: str, timeout_s: float) -> None:
-        super().__init__(f"{what}: no reply within {timeout_s} s", what=what, timeout_s=timeout_s)
+        super().__init__(f"{what}: no reply within {timeout_s:g} s", what=what,
+                         timeout_s=timeout_s)
+
+
+class NoServer(Timeout):
+    """No live server serves the map (no liveliness token) within the call's timeout."""
+
+    def __init__(self, map_name: str, token_key: str, timeout_s: float) -> None:
+        McsmError.__init__(
+            self, f"no server serves map {map_name!r} (no liveliness token on {token_key}) "
+            f"within {timeout_s:g} s", what="wait for server", map=map_name, key=token_key,
+            timeout_s=timeout_s)
+
+
+class NoPermittedServer(Timeout):
+    """The map's server is alive, but every request on this key got no reply at all.
+
+    Zenoh delivers no reply when an access-control list denies the request (or nobody
+    serves that key): retrying does not help; check the identity's rights on the key.
+    """
+
+    def __init__(self, key: str, server_id: str, timeout_s: float) -> None:
+        McsmError.__init__(
+            self, f"no permitted server for {key}: server {server_id} is alive but every "
+            f"request got no reply for {timeout_s:g} s (denied by the access-control list, "
+            "or a key it does not serve)", what=key, key=key, server_id=server_id,
+            timeout_s=timeout_s)
 
 
 _REGISTRY: dict[str, type[McsmError]] = {
     c.__name__: c
     for c in (McsmError, BadMessage, UnsupportedVersion, InvalidSamples, SampleCountMismatch,
               UnknownFrame, FrameExists, InvalidOperation, NotRelated, NumericalError,
-              LimitExceeded, Busy, InternalError, Timeout)
+              LimitExceeded, Busy, RequestIdReused, Forbidden, InternalError, Timeout,
+              NoServer, NoPermittedServer)
 }

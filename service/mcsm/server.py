@@ -2,15 +2,28 @@
 
 Threads and ownership:
 
-* Zenoh callback threads (one per delivery, concurrent) only decode and check the payload with
-  :mod:`mcsm.wire` and put the request on a bounded queue. A full queue is answered at once
-  with a ``Busy`` error (a ``LimitExceeded``): the client may retry later with the same
-  request id.
+* Each map has **one** queryable on ``<prefix>/<map>/**``: Zenoh runs its callbacks one at a
+  time, in arrival order, on that entity's thread, so everything one client session sends to a
+  map, on any of its keys, is decoded and queued in the order it arrived (a short ``remove``
+  cannot overtake a long ``update``). The callback routes on the concrete key (a wildcard key
+  is refused), decodes and checks the payload with :mod:`mcsm.wire`, checks a namespaced key's
+  frames (``update/<ns>``, ``remove/<ns>``), and puts the request on a bounded queue. A full
+  queue is answered at once with a ``Busy`` error (a ``LimitExceeded``): the client may retry
+  later with the same request id.
 * One worker thread owns every :class:`~mcsm.recording.MapState` and the
   :class:`~mcsm.recording.Recorder`. It takes requests in arrival order, assigns each applied
   operation the map's next sequence number, applies it through the core, records it (flushed),
   and only then acknowledges and publishes the event. Queries, info and exports go through the
   same worker, so they see a consistent state between two operations.
+
+Who may write what: the Zenoh access-control list (``deploy/``) lets a robot's identity send
+requests only on its own ``update/<robot>`` and ``remove/<robot>`` keys; the server refuses an
+update observed from (``a``), or creating (``b``), or a remove of, a frame outside that
+namespace with ``Forbidden``. Zenoh gives a queryable nothing authenticated about the
+requester (``Query.source_info`` is ``None`` unless the requester sets it, and then it is
+whatever the requester says), so the key expression, which the ACL enforces, is the identity.
+Every ack carries the server's Zenoh id; clients accept replies only from the server whose
+liveliness token ``<prefix>/<map>/alive/<zid>`` they see.
 
 Keys are listed in ``schemas/KEYS.md``. A failure part-way leaves the map as it was (the core
 guarantees it); rejected inputs are answered with a typed error, logged, counted and not
@@ -25,16 +38,26 @@ import queue
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import zenoh
 
 from mcsm import wire
+from mcsm.core.names import namespace_of
 from mcsm.core.smap import StochasticMap
-from mcsm.errors import Busy, InternalError, McsmError
-from mcsm.recording import DEFAULT_LRU, MapState, Recorder, RecordingError, decode_input, replay
+from mcsm.errors import Busy, Forbidden, InternalError, McsmError, UnknownFrame
+from mcsm.history import DEFAULT_SNAPSHOT_EVERY, DEFAULT_SNAPSHOTS_KEPT
+from mcsm.recording import (
+    DEFAULT_ID_TTL_S,
+    DEFAULT_LRU,
+    MapState,
+    Recorder,
+    RecordingError,
+    decode_input,
+    replay,
+)
 
 log = logging.getLogger(__name__)
 
@@ -53,7 +76,10 @@ class ServerOptions:
     checkpoint_every: int = 100
     queue_size: int = 1024
     lru_size: int = DEFAULT_LRU
+    id_ttl_s: float = DEFAULT_ID_TTL_S
     fsync: bool = False
+    snapshot_every: int = DEFAULT_SNAPSHOT_EVERY
+    snapshots_kept: int = DEFAULT_SNAPSHOTS_KEPT
 
 
 @dataclass
@@ -66,6 +92,7 @@ class _Item:
     recv_ns: int
     payload: bytes
     sender: str
+    namespace: str = ""
 
 
 class Server:
@@ -118,6 +145,8 @@ class Server:
                     self.recorder.path.unlink(missing_ok=True)
                 raise RecordingError(str(o.restore), f"replay diverged: {rep.divergence}")
             self.states.update(rep.states)
+            for st in self.states.values():
+                st.id_ttl_s = o.id_ttl_s
             log.info("restored %d inputs of %d map(s) from %s (%s)", rep.n_inputs,
                      len(rep.states), o.restore,
                      "complete" if rep.complete else f"truncated: {rep.tail_error}")
@@ -132,7 +161,9 @@ class Server:
                     log.warning("map %r: using the restored options %s", name,
                                 self.states[name].map.options())
                 continue
-            st = MapState(name, StochasticMap.from_options(dict(o.map_options)), o.lru_size)
+            st = MapState(name, StochasticMap.from_options(dict(o.map_options)), o.lru_size,
+                          o.id_ttl_s, snapshot_every=o.snapshot_every,
+                          snapshots_kept=o.snapshots_kept)
             self.states[name] = st
             if self.recorder is not None:
                 self.recorder.config(st, o.checkpoint_every, server_id=self.server_id)
@@ -145,17 +176,13 @@ class Server:
         k = wire.map_keys(name, self.opts.prefix)
         self.keys[name] = k
         s = self.session
-
-        def bind(op: str, key: str) -> Callable[[zenoh.Query], None]:
-            return lambda query: self._on_query(op, st, key, query)
-
-        for op, key in (("update", k.update), ("remove", k.remove), ("query", k.query),
-                        ("info", k.info), ("submap", k.submap)):
-            self._entities.append(s.declare_queryable(key, bind(op, key), complete=True))
-        self._publishers[name] = s.declare_publisher(k.events, express=True)
+        # One queryable per map: one callback thread, one arrival order for all its keys.
+        self._entities.append(s.declare_queryable(
+            k.all, lambda query: self._on_query(k, st, query), complete=False))
+        self._publishers[name] = s.declare_publisher(k.events, express=True,
+                                                     encoding=wire.ENCODING)
         self._entities.append(s.liveliness().declare_token(k.alive(self.server_id)))
-        log.info("serving map %r on %s/%s/* (N=%d, seq=%d)", name, self.opts.prefix, name,
-                 st.n_samples, st.seq)
+        log.info("serving map %r on %s (N=%d, seq=%d)", name, k.all, st.n_samples, st.seq)
 
     def close(self) -> None:
         """Stop taking requests, answer those queued, write final checkpoints, close the file."""
@@ -188,16 +215,28 @@ class Server:
                      self.recorder.n_inputs)
 
     # ---------------------------------------------------------------- zenoh callbacks
-    def _on_query(self, op: str, st: MapState, key: str, query: zenoh.Query) -> None:
-        """Decode, check and enqueue; never touches the map (runs on a Zenoh thread)."""
+    def _on_query(self, k: wire.Keys, st: MapState, query: zenoh.Query) -> None:
+        """Route, decode, check and enqueue; never touches the map (runs on Zenoh's thread
+        of this map's queryable, one query at a time, in arrival order)."""
         recv_ns = time.time_ns()
-        payload = query.payload.to_bytes() if query.payload is not None else b""
+        key = str(query.key_expr)
+        op = "request"
         try:
+            op, ns = k.route(key)
+            payload = query.payload.to_bytes() if query.payload is not None else b""
             req: Any
             if op == "update":
                 req = wire.decode_update(payload, st.n_samples)
+                if ns and namespace_of(req.a) != ns:
+                    raise Forbidden(key, req.a, ns, "an update observed from another namespace")
             elif op == "remove":
                 req = wire.decode_remove(payload)
+                if ns and namespace_of(req.frame) != ns:
+                    raise Forbidden(key, req.frame, ns, "a remove of another namespace's frame")
+            elif op in ("retract", "reinstate"):
+                req = wire.decode_retract(payload)
+            elif op == "verdict":
+                req = wire.decode_verdict_request(payload)
             elif op == "query":
                 req = wire.decode_query(payload)
             elif op == "info":
@@ -210,7 +249,7 @@ class Server:
             query.drop()
             return
         sender = getattr(req, "sender", "") or _source(query)
-        item = _Item(op, st, query, key, req, recv_ns, payload, sender)
+        item = _Item(op, st, query, key, req, recv_ns, payload, sender, ns)
         try:
             self._queue.put_nowait(item)
         except queue.Full:
@@ -224,7 +263,7 @@ class Server:
             st.count_rejected(err)
         log.info("rejected %s on map %r: %s: %s", op, st.name, type(err).__name__, err)
         try:
-            query.reply_err(wire.encode_error(err, request_id))
+            query.reply_err(wire.encode_error(err, request_id), encoding=wire.ENCODING)
         except zenoh.ZError as exc:
             log.warning("could not send an error reply: %s", exc)
 
@@ -244,13 +283,14 @@ class Server:
 
     def _reply(self, item: _Item, payload: bytes) -> None:
         try:
-            item.query.reply(item.key, payload, express=True)
+            item.query.reply(item.key, payload, express=True, encoding=wire.ENCODING)
         except zenoh.ZError as exc:
             log.warning("could not reply to %s: %s", item.op, exc)
 
     def _reply_err(self, item: _Item, err: McsmError) -> None:
         try:
-            item.query.reply_err(wire.encode_error(err, getattr(item.request, "request_id", "")))
+            item.query.reply_err(wire.encode_error(err, getattr(item.request, "request_id", "")),
+                                 encoding=wire.ENCODING)
         except zenoh.ZError as exc:
             log.warning("could not send an error reply: %s", exc)
 
@@ -259,8 +299,15 @@ class Server:
         if self.failed.is_set():
             self._reply_err(item, McsmError("server stopped: recording failed"))
             return
-        if item.op in ("update", "remove", "import"):
+        if item.op in ("update", "remove", "import", "retract", "reinstate"):
             self._apply(item)
+        elif item.op == "verdict":
+            try:
+                ack = st.verdict_of(item.request.target)
+            except McsmError as exc:
+                self._reject(st, item.query, exc, item.request.request_id, item.op)
+                return
+            self._reply(item, wire.encode_ack(replace(ack, server=self.server_id)))
         elif item.op == "query":
             req = item.request
             try:
@@ -290,17 +337,27 @@ class Server:
 
     def _apply(self, item: _Item) -> None:
         st, req = item.state, item.request
-        dup = st.lookup(req.request_id)
+        fingerprint = wire.request_fingerprint(item.op, req)
+        try:
+            dup = st.lookup(req.request_id, fingerprint, item.recv_ns)
+        except McsmError as exc:  # RequestIdReused: an id sent again with another request
+            self._reject(st, item.query, exc, req.request_id, item.op)
+            return
         if dup is not None:
             log.info("map %r: request %s already applied as seq %d; resending its ack",
                      st.name, req.request_id, dup.seq)
-            self._reply(item, wire.encode_ack(dup))
+            self._reply(item, wire.encode_ack(replace(dup, server=self.server_id)))
             return
         try:
-            ack = st.apply(item.op, req)
+            if item.namespace and item.op == "update" \
+                    and namespace_of(req.b) != item.namespace and not _has(st, req.b):
+                raise Forbidden(item.key, req.b, item.namespace,
+                                "a new frame in another namespace")
+            ack = st.apply(item.op, req, time_ns=item.recv_ns, fingerprint=fingerprint)
         except McsmError as exc:
             self._reject(st, item.query, exc, req.request_id, item.op)
             return
+        ack = replace(ack, server=self.server_id)
         digest: str | None = None
         try:
             if self.recorder is not None:
@@ -320,9 +377,13 @@ class Server:
         frames = ack.frames_added or ack.frames_removed
         if item.op == "update":
             frames = (req.a, req.b)
+        extra: dict[str, Any] = {"verdict": ack.verdict.to_dict()} if ack.verdict else {}
+        if item.op in ("retract", "reinstate"):  # what changed: the target and re-gated inputs
+            extra["target"] = req.target
+            extra["changed"] = {rid: v.to_dict() for rid, v in st.last_changed.items()}
         ev = wire.Event(map=st.name, seq=ack.seq, op=item.op, kind=ack.kind,
                         frames=tuple(frames), component=ack.component, time_ns=time.time_ns(),
-                        digest=digest)
+                        digest=digest, extra=extra)
         try:
             self._publishers[st.name].put(wire.encode_event(ev))
         except zenoh.ZError as exc:
@@ -338,8 +399,17 @@ class Server:
             digest=st.digest(), frames=tuple(m.frames()),
             components={r: tuple(m.component(r)) for r in m.components()},
             rejected=rejected, rejected_by_error=by_error, server_id=self.server_id,
+            verdicts=dict(st.verdicts),
             recording=str(self.recorder.path) if self.recorder is not None else "",
             queue_length=self._queue.qsize())
+
+
+def _has(st: MapState, frame: str) -> bool:
+    try:
+        st.map.is_point(frame)
+    except UnknownFrame:
+        return False
+    return True
 
 
 def _source(query: zenoh.Query) -> str:

@@ -18,6 +18,7 @@ decodes with the very same code. Replay decodes recorded requests through it too
 
 from __future__ import annotations
 
+import hashlib
 import math
 import re
 from collections.abc import Mapping, Sequence
@@ -42,6 +43,9 @@ Samples = npt.NDArray[np.float64]
 
 VERSION = 1
 """Protocol version written in the ``v`` field of every message."""
+
+ENCODING = "application/msgpack"
+"""Zenoh encoding of every payload the server sends (replies, error replies, events)."""
 
 DEFAULT_PREFIX = "mcsm"
 DEFAULT_MAP = "default"
@@ -71,7 +75,12 @@ QueryWant = Literal["samples", "marginal"]
 
 @dataclass(frozen=True)
 class Keys:
-    """The key expressions of one map (``<prefix>/<map>/...``); see ``schemas/KEYS.md``."""
+    """The key expressions of one map (``<prefix>/<map>/...``); see ``schemas/KEYS.md``.
+
+    ``update`` and ``remove`` write any frame; ``update_as(ns)`` and ``remove_as(ns)``
+    (``.../update/<ns>``) write only frames of namespace ``ns``: the shipped access-control
+    lists grant a robot's identity its own namespace's keys alone (``deploy/``).
+    """
 
     prefix: str
     map: str
@@ -80,12 +89,30 @@ class Keys:
         return f"{self.prefix}/{self.map}/{leaf}"
 
     @property
+    def base(self) -> str:
+        """``<prefix>/<map>``: every key of the map is under it."""
+        return f"{self.prefix}/{self.map}"
+
+    @property
+    def all(self) -> str:
+        """``<prefix>/<map>/**``: the server's one queryable (one arrival order per map)."""
+        return self._k("**")
+
+    @property
     def update(self) -> str:
         return self._k("update")
 
     @property
     def remove(self) -> str:
         return self._k("remove")
+
+    def update_as(self, namespace: str) -> str:
+        """Update key restricted to frames ``a`` in ``namespace`` (checked by the server)."""
+        return self._k(f"update/{check_namespace(namespace)}")
+
+    def remove_as(self, namespace: str) -> str:
+        """Remove key restricted to frames in ``namespace`` (checked by the server)."""
+        return self._k(f"remove/{check_namespace(namespace)}")
 
     @property
     def query(self) -> str:
@@ -100,6 +127,18 @@ class Keys:
         return self._k("submap")
 
     @property
+    def retract(self) -> str:
+        return self._k("retract")
+
+    @property
+    def reinstate(self) -> str:
+        return self._k("reinstate")
+
+    @property
+    def verdict(self) -> str:
+        return self._k("verdict")
+
+    @property
     def events(self) -> str:
         return self._k("events")
 
@@ -110,6 +149,38 @@ class Keys:
     @property
     def alive_any(self) -> str:
         return self._k("alive/*")
+
+    def route(self, key: str) -> tuple[str, str]:
+        """``(leaf, namespace)`` of a concrete key of this map: ``("update", "robot1")`` for
+        ``.../update/robot1``, ``("info", "")`` for ``.../info``.
+
+        Raises
+        ------
+        BadMessage
+            If ``key`` is not one of the map's request keys (wildcards included: a request
+            must name one concrete key).
+        """
+        head = self.base + "/"
+        rest = key[len(head):] if key.startswith(head) else ""
+        leaf, _, ns = rest.partition("/")
+        if leaf in ("update", "remove") and (not ns or _NS_RE.fullmatch(ns)):
+            return leaf, ns
+        if leaf in ("query", "info", "submap", "retract", "reinstate", "verdict") and not ns:
+            return leaf, ""
+        raise BadMessage("key", f"one of {self.base}/{{update,remove}}[/<namespace>], "
+                         "query, info, submap, retract, reinstate or verdict (no wildcards)",
+                         _short(key))
+
+
+_NS_RE = re.compile(r"[A-Za-z0-9_.:+-]{1,128}")
+
+
+def check_namespace(namespace: str) -> str:
+    """Return ``namespace`` if it is a valid frame-name segment (``robot1``), else raise."""
+    if not isinstance(namespace, str) or not _NS_RE.fullmatch(namespace):
+        raise BadMessage("namespace", "one frame-name segment of [A-Za-z0-9_.:+-]",
+                         _short(namespace))
+    return namespace
 
 
 def map_keys(map_name: str = DEFAULT_MAP, prefix: str = DEFAULT_PREFIX) -> Keys:
@@ -143,6 +214,10 @@ class UpdateRequest:
     b: str
     samples: Samples
     sender: str = ""
+    trusted: bool = False
+    """Bypass the map's loop-closure gate (the source vouches for this constraint)."""
+    stamp_ns: int | None = None
+    """The source's measurement time (ns since the epoch), recorded and returned in verdicts."""
 
     @property
     def point(self) -> bool:
@@ -154,6 +229,23 @@ class RemoveRequest:
     request_id: str
     frame: str
     sender: str = ""
+
+
+@dataclass(frozen=True)
+class RetractRequest:
+    """Retract (or reinstate, by the key it is sent to) the update ``target`` (a request id)."""
+
+    request_id: str
+    target: str
+    sender: str = ""
+
+
+@dataclass(frozen=True)
+class VerdictRequest:
+    """Ask for the current verdict of the request ``target`` (a request id)."""
+
+    request_id: str
+    target: str
 
 
 @dataclass(frozen=True)
@@ -209,6 +301,46 @@ class SubmapImportRequest:
     sender: str = ""
 
 
+VERDICT_STATUSES = ("accepted", "rejected", "pending", "retracted", "reinstated")
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """What the map did with one constraint (an update): ``status`` (accepted, rejected, ...),
+    the gate's ``nis`` over ``dof`` live dimensions against ``threshold`` (None: not gated),
+    ``reason`` (why there was nothing to test, or "trusted"), and the source's ``stamp_ns``."""
+
+    status: str
+    nis: float | None = None
+    dof: int = 0
+    threshold: float | None = None
+    reason: str = ""
+    stamp_ns: int | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"status": self.status, "nis": self.nis, "dof": self.dof,
+                "threshold": self.threshold, "reason": self.reason, "stamp_ns": self.stamp_ns}
+
+    @classmethod
+    def from_dict(cls, d: Any) -> Verdict:
+        if not isinstance(d, dict):
+            raise BadMessage("verdict", "a map", type(d).__name__)
+        _keys(d, ("status", "nis", "dof", "threshold", "reason", "stamp_ns"), ())
+        status = _str(d, "status", max_chars=16)
+        if status not in VERDICT_STATUSES:
+            raise BadMessage("verdict.status", " | ".join(VERDICT_STATUSES), _short(status))
+        for key in ("nis", "threshold"):
+            if d[key] is not None and not isinstance(d[key], (int, float)):
+                raise BadMessage(f"verdict.{key}", "a number or nil", _short(d[key]))
+        stamp = d["stamp_ns"]
+        if stamp is not None and type(stamp) is not int:
+            raise BadMessage("verdict.stamp_ns", "an integer or nil", _short(stamp))
+        return cls(status=status, nis=None if d["nis"] is None else float(d["nis"]),
+                   dof=_int(d, "dof"),
+                   threshold=None if d["threshold"] is None else float(d["threshold"]),
+                   reason=_str(d, "reason", max_chars=256, default=""), stamp_ns=stamp)
+
+
 @dataclass(frozen=True)
 class Ack:
     """The server's acknowledgement of an applied operation.
@@ -216,7 +348,8 @@ class Ack:
     ``seq`` is the map's sequence number of the operation (1, 2, ... in apply order);
     ``kind`` is the core's result kind (``new_component``, ``new_frame``, ``join``,
     ``loop_closure``, ``import``, ``remove``); ``duplicate`` is true when the request id had
-    already been applied and this is the original acknowledgement, sent again.
+    already been applied and this is the original acknowledgement, sent again; ``server`` is
+    the Zenoh id of the server that applied it (``""`` from an older server).
     """
 
     request_id: str
@@ -227,6 +360,8 @@ class Ack:
     frames_added: tuple[str, ...] = ()
     frames_removed: tuple[str, ...] = ()
     duplicate: bool = False
+    server: str = ""
+    verdict: Verdict | None = None
 
 
 @dataclass(frozen=True)
@@ -256,6 +391,8 @@ class MapInfo:
     server_id: str
     recording: str
     queue_length: int = 0
+    verdicts: dict[str, int] = field(default_factory=dict)
+    """Updates per verdict status (accepted, rejected, ...)."""
 
     @property
     def n_frames(self) -> int:
@@ -460,12 +597,18 @@ def decode_samples(obj: Any, n_samples: int | None, widths: tuple[int, ...] = (7
 # --------------------------------------------------------------------------------------------
 
 def encode_update(request_id: str, a: str, b: str, samples: npt.ArrayLike,
-                  sender: str = "") -> bytes:
-    """An update request: AT ``a -> b`` ``(N, 7)`` or point ``b`` from ``a`` ``(N, 3)``."""
+                  sender: str = "", *, trusted: bool = False,
+                  stamp_ns: int | None = None) -> bytes:
+    """An update request: AT ``a -> b`` ``(N, 7)`` or point ``b`` from ``a`` ``(N, 3)``;
+    ``trusted`` bypasses the gate, ``stamp_ns`` is the source's measurement time."""
     d: dict[str, Any] = {"v": VERSION, "id": request_id, "a": a, "b": b,
                          "samples": pack_array(samples)}
     if sender:
         d["sender"] = sender
+    if trusted:
+        d["trusted"] = True
+    if stamp_ns is not None:
+        d["stamp_ns"] = int(stamp_ns)
     return pack(d)
 
 
@@ -478,13 +621,20 @@ def decode_update(payload: bytes, n_samples: int | None, *,
     LimitExceeded, BadMessage, UnsupportedVersion, SampleCountMismatch, InvalidSamples
     """
     d = unpack(payload, max_bytes=max_bytes)
-    _keys(d, ("id", "a", "b", "samples"), ("sender",))
+    _keys(d, ("id", "a", "b", "samples"), ("sender", "trusted", "stamp_ns"))
     rid = _request_id(d)
     a = check_frame(d["a"], "a")
     b = check_frame(d["b"], "b")
     sender = _str(d, "sender", max_chars=MAX_SENDER_CHARS, default="")
+    trusted = d.get("trusted", False)
+    if type(trusted) is not bool:
+        raise BadMessage("trusted", "true or false", _short(trusted))
+    stamp_ns = _int(d, "stamp_ns") if "stamp_ns" in d else None
+    if stamp_ns is not None and stamp_ns >= 2**63:
+        raise BadMessage("stamp_ns", "an integer below 2**63", _short(stamp_ns))
     samples = decode_samples(d["samples"], n_samples)
-    return UpdateRequest(request_id=rid, a=a, b=b, samples=samples, sender=sender)
+    return UpdateRequest(request_id=rid, a=a, b=b, samples=samples, sender=sender,
+                         trusted=trusted, stamp_ns=stamp_ns)
 
 
 def encode_remove(request_id: str, frame: str, sender: str = "") -> bytes:
@@ -499,6 +649,34 @@ def decode_remove(payload: bytes, *, max_bytes: int = MAX_PAYLOAD_BYTES) -> Remo
     _keys(d, ("id", "frame"), ("sender",))
     return RemoveRequest(request_id=_request_id(d), frame=check_frame(d["frame"]),
                          sender=_str(d, "sender", max_chars=MAX_SENDER_CHARS, default=""))
+
+
+def encode_retract(request_id: str, target: str, sender: str = "") -> bytes:
+    """A retract or reinstate request (the key says which) of the update ``target``."""
+    d: dict[str, Any] = {"v": VERSION, "id": request_id, "target": target}
+    if sender:
+        d["sender"] = sender
+    return pack(d)
+
+
+def decode_retract(payload: bytes, *, max_bytes: int = MAX_PAYLOAD_BYTES) -> RetractRequest:
+    d = unpack(payload, max_bytes=max_bytes)
+    _keys(d, ("id", "target"), ("sender",))
+    return RetractRequest(request_id=_request_id(d),
+                          target=_str(d, "target", max_chars=MAX_ID_CHARS),
+                          sender=_str(d, "sender", max_chars=MAX_SENDER_CHARS, default=""))
+
+
+def encode_verdict_request(request_id: str, target: str) -> bytes:
+    return pack({"v": VERSION, "id": request_id, "target": target})
+
+
+def decode_verdict_request(payload: bytes, *,
+                           max_bytes: int = MAX_PAYLOAD_BYTES) -> VerdictRequest:
+    d = unpack(payload, max_bytes=max_bytes)
+    _keys(d, ("id", "target"), ())
+    return VerdictRequest(request_id=_request_id(d),
+                          target=_str(d, "target", max_chars=MAX_ID_CHARS))
 
 
 def encode_query(request_id: str, a: str, b: str, want: QueryWant = "samples") -> bytes:
@@ -611,7 +789,9 @@ def encode_ack(ack: Ack) -> bytes:
     return pack({"v": VERSION, "id": ack.request_id, "seq": ack.seq, "op": ack.op,
                  "kind": ack.kind, "component": ack.component,
                  "frames_added": list(ack.frames_added),
-                 "frames_removed": list(ack.frames_removed), "duplicate": ack.duplicate})
+                 "frames_removed": list(ack.frames_removed), "duplicate": ack.duplicate,
+                 "server": ack.server,
+                 **({"verdict": ack.verdict.to_dict()} if ack.verdict is not None else {})})
 
 
 def _str_list(obj: Any, fieldname: str) -> tuple[str, ...]:
@@ -623,7 +803,7 @@ def _str_list(obj: Any, fieldname: str) -> tuple[str, ...]:
 def decode_ack(payload: bytes) -> Ack:
     d = unpack(payload, max_bytes=MAX_REPLY_BYTES)
     _keys(d, ("id", "seq", "op", "kind", "component", "frames_added", "frames_removed",
-              "duplicate"))
+              "duplicate"), ("server", "verdict"))
     comp = d["component"]
     if comp is not None and not isinstance(comp, str):
         raise BadMessage("component", "a frame name or nil", _short(comp))
@@ -631,7 +811,40 @@ def decode_ack(payload: bytes) -> Ack:
                op=_str(d, "op", max_chars=32), kind=_str(d, "kind", max_chars=32),
                component=comp, frames_added=_str_list(d["frames_added"], "frames_added"),
                frames_removed=_str_list(d["frames_removed"], "frames_removed"),
-               duplicate=bool(d["duplicate"]))
+               duplicate=bool(d["duplicate"]),
+               server=_str(d, "server", max_chars=MAX_ID_CHARS, default=""),
+               verdict=Verdict.from_dict(d["verdict"]) if "verdict" in d else None)
+
+
+def request_fingerprint(op: str, req: Any) -> str:
+    """A digest of what a state-changing request asks for (not its id or sender).
+
+    Two requests with one id and the same fingerprint are one request sent twice (a retry);
+    with different fingerprints they are different requests (``RequestIdReused``). SHA-256
+    (hardware-accelerated on current CPUs) over the names and the sample bytes, truncated to
+    128 bits.
+    """
+    h = hashlib.sha256(op.encode())
+    if isinstance(req, UpdateRequest):
+        h.update(f"\0{req.a}\0{req.b}\0{req.samples.shape}\0".encode())
+        h.update(_bytes_view(req.samples))
+    elif isinstance(req, RemoveRequest):
+        h.update(f"\0{req.frame}".encode())
+    elif isinstance(req, RetractRequest):
+        h.update(f"\0{req.target}".encode())
+    elif isinstance(req, SubmapImportRequest):
+        sub = req.submap
+        h.update(f"\0{sub.root}\0{'/'.join(sub.frames)}\0{sub.is_point}\0"
+                 f"{sub.edges.shape}\0".encode())
+        h.update(_bytes_view(sub.edges))
+    else:
+        raise McsmError(f"no fingerprint for {type(req).__name__}")
+    return h.hexdigest()[:32]
+
+
+def _bytes_view(a: Samples) -> memoryview:
+    """The little-endian float64 bytes of ``a`` without a copy when it is already so."""
+    return np.ascontiguousarray(a, dtype=F8).data.cast("B")
 
 
 def encode_query_reply(r: QueryReply) -> bytes:
@@ -668,14 +881,15 @@ def encode_info_reply(info: MapInfo) -> bytes:
                  "components": {k: list(v) for k, v in info.components.items()},
                  "rejected": info.rejected, "rejected_by_error": dict(info.rejected_by_error),
                  "server_id": info.server_id, "recording": info.recording,
-                 "queue_length": info.queue_length})
+                 "queue_length": info.queue_length, "verdicts": dict(info.verdicts)})
 
 
 def decode_info_reply(payload: bytes) -> MapInfo:
     # one entry per component: allow as many as a map may have frames
     d = unpack(payload, max_bytes=MAX_REPLY_BYTES, max_map_len=MAX_SUBMAP_FRAMES)
     _keys(d, ("map", "n_samples", "options", "seq", "digest", "frames", "components",
-              "rejected", "rejected_by_error", "server_id", "recording"), ("queue_length",))
+              "rejected", "rejected_by_error", "server_id", "recording"),
+          ("queue_length", "verdicts"))
     if not isinstance(d["options"], dict) or not isinstance(d["components"], dict):
         raise BadMessage("options/components", "maps", "other types")
     if not isinstance(d["rejected_by_error"], dict):
@@ -690,7 +904,15 @@ def decode_info_reply(payload: bytes) -> MapInfo:
         server_id=_str(d, "server_id", max_chars=256),
         recording=_str(d, "recording", max_chars=4096),
         queue_length=int(d.get("queue_length", 0)),
+        verdicts=_count_map(d.get("verdicts", {}), "verdicts"),
     )
+
+
+def _count_map(obj: Any, fieldname: str) -> dict[str, int]:
+    if not isinstance(obj, dict) or not all(
+            isinstance(k, str) and type(v) is int for k, v in obj.items()):
+        raise BadMessage(fieldname, "a map of names to counts", _short(obj))
+    return dict(obj)
 
 
 def encode_submap_reply(r: SubmapReply) -> bytes:

@@ -18,16 +18,22 @@ import zenoh
 from mcsm import StochasticMap, wire
 from mcsm.connect import (
     add_connection_args,
+    check_endpoint,
     client_config,
     client_kwargs,
     listen_endpoints,
+    security_warning,
     server_config,
 )
 from mcsm.core.quat import qexp
 from mcsm.errors import (
+    BadMessage,
     Busy,
     InvalidSamples,
     LimitExceeded,
+    McsmError,
+    NoPermittedServer,
+    NoServer,
     NotRelated,
     SampleCountMismatch,
     Timeout,
@@ -124,9 +130,11 @@ def test_open_without_server_times_out_quickly() -> None:
     assert time.monotonic() - t0 < 10.0
 
 
-def test_silence_times_out_and_retries_reuse_the_request_id() -> None:
-    """A queryable that stays silent on the first attempt and answers the second: the client
-    retries with the very same payload (same request id) and returns the answer."""
+def test_silence_is_retried_with_the_same_id_until_the_full_timeout() -> None:
+    """A server (token + queryable) that stays silent on the first attempt and answers the
+    second: the client sends the very same payload (same request id) again and returns the
+    answer. A request never answered fails after its full timeout (not milliseconds), as
+    NoPermittedServer (alive server, no reply at all); with no server: NoServer."""
     ep = free_endpoint()
     srv = zenoh.open(server_config(ep))
     seen: list[str] = []
@@ -140,20 +148,30 @@ def test_silence_times_out_and_retries_reuse_the_request_id() -> None:
         if not first:
             q.reply(q.key_expr, wire.encode_ack(wire.Ack(req.request_id, 1, "update",
                                                          "new_component", req.a,
-                                                         (req.a, req.b))))
+                                                         (req.a, req.b),
+                                                         server=str(srv.zid()))))
         q.drop()
 
     qa = srv.declare_queryable("mcsm/default/update", on_query)
+    tok = srv.liveliness().declare_token(f"mcsm/default/alive/{srv.zid()}")
     try:
         rng = np.random.default_rng(6602)
-        with MapClient(connect=ep, timeout_s=0.5, retries=1) as c:
+        with MapClient(connect=ep, timeout_s=1.0) as c:
             ack = c.update("a", "b", at(rng, [1, 0, 0]))
             assert len(seen) == 2 and seen[0] == seen[1] == ack.request_id
-            # never answered: Timeout after every attempt, in bounded time
+            assert ack.server == c.server_id == str(srv.zid())
             t0 = time.monotonic()
-            with pytest.raises(Timeout):
+            with pytest.raises(NoPermittedServer, match="no permitted server"):
                 c.remove("a")
-            assert time.monotonic() - t0 < 6.0
+            assert 1.0 <= time.monotonic() - t0 < 6.0
+            tok.undeclare()
+            deadline = time.monotonic() + 10
+            while c.servers(0.2) and time.monotonic() < deadline:
+                pass  # the token's removal reaches the client
+            t0 = time.monotonic()
+            with pytest.raises(NoServer, match="no server serves map"):
+                c.remove("a", timeout_s=0.5)
+            assert 0.5 <= time.monotonic() - t0 < 5.0
     finally:
         qa.undeclare()
         srv.close()
@@ -199,7 +217,7 @@ def test_server_close_writes_a_replayable_recording(tmp_path: Path) -> None:
     assert rep.states["default"].map.state_digest() == digest
 
 
-def test_connection_args_and_configs(tmp_path: Path) -> None:
+def test_connection_args_and_configs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     p = argparse.ArgumentParser()
     add_connection_args(p)
     a = p.parse_args([])
@@ -213,7 +231,7 @@ def test_connection_args_and_configs(tmp_path: Path) -> None:
     assert s.map == ["a", "b"] and s.listen is None
 
     sc = server_config()
-    assert listen_endpoints(sc) == ["tcp/127.0.0.1:7447"]
+    assert listen_endpoints(sc) == ["tcp/127.0.0.1:7457"]  # not zenohd's 7447
     assert json.loads(sc.get_json("mode")) == "peer"
     assert json.loads(sc.get_json("scouting/multicast/enabled")) is False
     assert json.loads(sc.get_json("transport/shared_memory/enabled")) is False
@@ -221,7 +239,7 @@ def test_connection_args_and_configs(tmp_path: Path) -> None:
     assert json.loads(sc.get_json("transport/link/rx/max_message_size")) == 8 * 1024 * 1024
     cc = client_config()
     assert json.loads(cc.get_json("mode")) == "client"
-    assert json.loads(cc.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7447"]
+    assert json.loads(cc.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7457"]
     assert json.loads(cc.get_json("scouting/multicast/enabled")) is False
     # a config file replaces the defaults; an explicit endpoint still applies on top
     f = tmp_path / "c.json5"
@@ -231,6 +249,31 @@ def test_connection_args_and_configs(tmp_path: Path) -> None:
     cd: dict[str, Any] = {"mode": "client", "connect": {"endpoints": ["tcp/127.0.0.1:5"]}}
     assert json.loads(client_config("tcp/127.0.0.1:6", cd).get_json("connect/endpoints")) == [
         "tcp/127.0.0.1:6"]
+    # ZENOH_CONFIG is read when no config is given, like Zenoh's own tools
+    monkeypatch.setenv("ZENOH_CONFIG", str(f))
+    assert json.loads(client_config().get_json("connect/endpoints")) == ["tcp/127.0.0.1:1234"]
+    monkeypatch.delenv("ZENOH_CONFIG")
+    # relative paths inside a config file are resolved against the file's directory
+    (tmp_path / "sub").mkdir()
+    g = tmp_path / "sub" / "s.json5"
+    g.write_text('{ mode: "peer", transport: { auth: { usrpwd: { user: "server", '
+                 'password: "x", dictionary_file: "users.txt" } } } }')
+    got = json.loads(server_config(None, g).get_json("transport/auth/usrpwd/dictionary_file"))
+    assert got == str(tmp_path / "sub" / "users.txt")
+    # endpoints are checked: a missing protocol is a one-line BadMessage
+    for bad in ("127.0.0.1:7457", "tcp/127.0.0.1", "tcp:127.0.0.1:1", ""):
+        with pytest.raises(BadMessage, match="tcp/127.0.0.1:7457"):
+            check_endpoint(bad)
+    for good in ("tcp/127.0.0.1:1", "tls/localhost:7457", "tcp/[::1]:80", "unixsock-stream/x"):
+        assert check_endpoint(good) == good
+    # the one-line warning of a server reachable off this host
+    assert security_warning(server_config()) is None
+    assert "without authentication" in str(security_warning(server_config("tcp/0.0.0.0:1")))
+    with_auth = tmp_path / "sub" / "a.json5"
+    with_auth.write_text('{ mode: "peer", transport: { auth: { usrpwd: { user: "s", '
+                         'password: "x", dictionary_file: "u.txt" } } } }')
+    assert "without access control" in str(
+        security_warning(server_config("tcp/0.0.0.0:1", with_auth)))
 
 
 def test_full_queue_answers_busy_at_once(tmp_path: Path) -> None:
@@ -254,14 +297,14 @@ def test_full_queue_answers_busy_at_once(tmp_path: Path) -> None:
     results: dict[str, Any] = {}
 
     def call(name: str, a: str, b: str) -> None:
-        with MapClient(connect=ep, timeout_s=20, retries=0) as c:
+        with MapClient(connect=ep, timeout_s=20) as c:
             results[name] = c.update(a, b, at(rng, [1, 0, 0]))
 
     try:
         t1 = threading.Thread(target=call, args=("first", "a", "b"))
         t1.start()
         assert holding.wait(10.0)
-        with MapClient(connect=ep, timeout_s=20, retries=0) as c:
+        with MapClient(connect=ep, timeout_s=20) as c:
             t2 = threading.Thread(target=call, args=("second", "c", "d"))
             t2.start()
             deadline = time.monotonic() + 10
@@ -280,3 +323,135 @@ def test_full_queue_answers_busy_at_once(tmp_path: Path) -> None:
         release.set()
         srv.close()
         session.close()
+
+
+def test_rogue_replies_are_never_accepted(served: tuple[str, Server]) -> None:
+    """A rogue session answering on every key of the map (fast, with a forged ack naming the
+    real server): 0 of its replies accepted, those seen counted; the real server's acks all
+    come back. A rogue that also declares a liveliness token makes the client refuse to guess."""
+    ep, srv = served
+    rogue = zenoh.open(client_config(ep))
+    forged = 0
+
+    def on_query(q: zenoh.Query) -> None:
+        nonlocal forged
+        try:
+            req = wire.decode_update(q.payload.to_bytes() if q.payload else b"", None)
+        except Exception:
+            return
+        forged += 1
+        q.reply(q.key_expr, wire.encode_ack(wire.Ack(req.request_id, 999, "update", "join",
+                                                     "fake", server=srv.server_id)))
+
+    qa = rogue.declare_queryable("mcsm/default/**", on_query, complete=True)
+    rng = np.random.default_rng(6606)
+    try:
+        with MapClient(connect=ep, timeout_s=10) as c:
+            deadline = time.monotonic() + 10
+            acks = []
+            for i in range(20):
+                acks.append(c.update(f"g{i}", f"g{i + 1}", at(rng, [1, 0, 0])))
+            assert [a.seq for a in acks] == list(range(1, 21))
+            assert all(a.server == srv.server_id and a.kind != "join" for a in acks)
+            while forged < 20 and time.monotonic() < deadline:
+                time.sleep(0.01)  # polling the rogue's counter
+            # the rogue answered all 20; those read before the server's reply were counted
+            assert forged == 20 and 0 <= c.foreign_replies <= 20
+            tok = rogue.liveliness().declare_token(f"mcsm/default/alive/{rogue.zid()}")
+            c._server = None  # as after a restart: find the server again
+            while len(c.servers(0.5)) < 2 and time.monotonic() < deadline:
+                pass  # the rogue's token reaches the client
+            with pytest.raises(McsmError, match="2 servers claim map"):
+                c.info()
+            tok.undeclare()
+        # a client pinned to the real server id is not confused by either
+        with MapClient(connect=ep, timeout_s=10, server_id=srv.server_id) as c:
+            assert c.update("h0", "h1", at(rng, [1, 0, 0])).server == srv.server_id
+    finally:
+        qa.undeclare()
+        rogue.close()
+
+
+def test_cli_connection_flags_before_or_after_the_command(
+        served: tuple[str, Server], capsys: pytest.CaptureFixture[str]) -> None:
+    from mcsm_client.cli import main
+
+    ep, _ = served
+    assert main(["--connect", ep, "--timeout-s", "5", "info", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["map"] == "default"
+    assert main(["info", "--connect", ep, "--map", "other", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["map"] == "other"
+    assert main(["--map", "other", "info", "--connect", ep, "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["map"] == "other"
+    # a bad endpoint is a one-line usage error (exit 2), no traceback
+    assert main(["--connect", ep.removeprefix("tcp/"), "info"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "tcp/127.0.0.1:7457" in err and "Traceback" not in err
+    # no server for the map: exit 3 after the timeout, saying so
+    assert main(["info", "--connect", ep, "--map", "nosuch", "--timeout-s", "0.5"]) == 3
+    assert "no server serves map 'nosuch'" in capsys.readouterr().err
+
+
+def test_sim_play_multirobot_refuse_frames_that_exist(
+        served: tuple[str, Server], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A second `sim` into the same map is refused (exit 2, one line saying why) instead of
+    merging into the first run's frames; with --namespace it writes NS/... frames."""
+    from mcsm_client.cli import main
+
+    ep, _ = served
+    sim = ["sim", "--connect", ep, "--map", "other", "--iterations", "4", "--landmarks", "5",
+           "--json"]
+    assert main(sim) == 0
+    capsys.readouterr()
+    assert main(sim) == 2
+    err = capsys.readouterr().err
+    assert "already has" in err and "--namespace" in err and err.count("\n") == 1
+    assert main([*sim, "--namespace", "run2"]) == 0
+    assert main([*sim, "--namespace", "run2"]) == 2
+    assert main(["multirobot", "--connect", ep, "--map", "other", "--landmarks", "5"]) == 2
+    capsys.readouterr()
+    with MapClient(connect=ep, map="other") as c:
+        frames = c.info().frames
+    assert any(f.startswith("run2/x") for f in frames)
+    assert all(f.startswith("run2/") for f in frames if "/" in f)
+    g2o = tmp_path / "tiny.g2o"
+    g2o.write_text("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\n"
+                   "EDGE_SE2 0 1 1 0 0 100 0 0 100 0 1000\n")
+    assert main(["play", str(g2o), "--connect", ep, "--map", "other", "--no-progress"]) == 2
+    assert main(["play", str(g2o), "--connect", ep, "--map", "other", "--no-progress",
+                 "--namespace", "run3"]) == 0
+
+
+def test_server_flags_before_or_after_serve() -> None:
+    from mcsm.connect import flags_after_command
+
+    assert flags_after_command(["--listen", "tcp/127.0.0.1:1", "serve", "--samples", "5"],
+                               "serve") == ["serve", "--listen", "tcp/127.0.0.1:1",
+                                            "--samples", "5"]
+    assert flags_after_command(["--zenoh-config=x.json5", "--map", "a", "serve"], "serve") == [
+        "serve", "--zenoh-config=x.json5", "--map", "a"]
+    assert flags_after_command(["replay", "f.mcap"], "serve") == ["replay", "f.mcap"]
+    assert flags_after_command(["-v", "serve"], "serve") == ["-v", "serve"]
+
+
+def test_slow_server_gives_timeout_after_the_full_deadline() -> None:
+    """A live server that holds every request past the deadline: plain Timeout (not NoServer,
+    not NoPermittedServer), raised after the call's own timeout, naming it."""
+    ep = free_endpoint()
+    srv = zenoh.open(server_config(ep))
+    held: list[zenoh.Query] = []
+    qa = srv.declare_queryable("mcsm/default/**", held.append)
+    tok = srv.liveliness().declare_token(f"mcsm/default/alive/{srv.zid()}")
+    try:
+        with MapClient(connect=ep, timeout_s=1.5) as c:
+            t0 = time.monotonic()
+            with pytest.raises(Timeout, match="no reply within 1.5 s") as exc:
+                c.info()
+            assert 1.5 <= time.monotonic() - t0 < 6.0
+            assert type(exc.value) is Timeout and "alive but did not answer" in str(exc.value)
+    finally:
+        for q in held:
+            q.drop()
+        tok.undeclare()
+        qa.undeclare()
+        srv.close()

@@ -50,21 +50,24 @@ class Daemon:
 
 
 def start_daemon(workdir: Path, *args: str, record: Path | None = None,
-                 name: str = "d", endpoint: str | None = None) -> Daemon:
+                 name: str = "d", endpoint: str | None = None,
+                 listen_on: str | None = None, env: dict[str, str] | None = None) -> Daemon:
     """Run ``python -m mcsm.cli serve`` and wait (with a deadline) for ``listening on``.
 
     With ``endpoint`` given, no ``--listen`` is passed (the endpoint comes from a config file
-    in ``args``) and the ``listening on`` line must name it.
+    in ``args``) and the ``listening on`` line must name it. ``listen_on`` reuses a known
+    endpoint (a restart on the same port); ``env`` adds environment variables.
     """
-    ep = endpoint or f"tcp/127.0.0.1:{free_port()}"
+    ep = endpoint or listen_on or f"tcp/127.0.0.1:{free_port()}"
     listen = [] if endpoint else ["--listen", ep]
     record = record if record is not None else workdir / f"{name}.mcap"
     log = workdir / f"{name}.log"
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    full_env = dict(os.environ, PYTHONUNBUFFERED="1", **(env or {}))
     with open(log, "w") as logf:
         proc = subprocess.Popen(
             [sys.executable, "-m", "mcsm.cli", "serve", *listen, "--record", str(record),
-             *args], stdout=subprocess.PIPE, stderr=logf, text=True, cwd=workdir, env=env)
+             *args], stdout=subprocess.PIPE, stderr=logf, text=True, cwd=workdir,
+            env=full_env)
     d = Daemon(proc, ep, record, log)
     assert proc.stdout is not None
     out = proc.stdout
