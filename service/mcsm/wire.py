@@ -150,10 +150,10 @@ class Keys:
         """
         head = self.base + "/"
         rest = key[len(head):] if key.startswith(head) else ""
-        leaf, _, ns = rest.partition("/")
-        if leaf in ("update", "remove") and (not ns or _NS_RE.fullmatch(ns)):
+        leaf, sep, ns = rest.partition("/")
+        if leaf in ("update", "remove") and (not sep or _NS_RE.fullmatch(ns)):
             return leaf, ns
-        if leaf in ("query", "info", "submap") and not ns:
+        if leaf in ("query", "info", "submap") and not sep:
             return leaf, ""
         raise BadMessage("key", f"one of {self.base}/{{update,remove}}[/<namespace>], "
                          "query, info or submap (no wildcards)", _short(key))
