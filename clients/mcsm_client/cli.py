@@ -578,7 +578,8 @@ def main(argv: list[str] | None = None) -> int:
               f"and do --connect/--map/--prefix match it?)", file=sys.stderr)
         return EXIT_TIMEOUT
     except McsmError as exc:
-        if exc.fields.get("field") in ("--connect", "--connect-b", "--zenoh-config"):
+        if exc.fields.get("field") in ("--connect", "--connect-b", "--zenoh-config",
+                                       "namespace"):
             print(f"{prog}: {exc.message}", file=sys.stderr)  # a usage error, found early
             return EXIT_USAGE
         print(f"{prog}: refused: {type(exc).__name__}: {exc.message}", file=sys.stderr)

@@ -162,10 +162,10 @@ class Keys:
         """
         head = self.base + "/"
         rest = key[len(head):] if key.startswith(head) else ""
-        leaf, _, ns = rest.partition("/")
-        if leaf in ("update", "remove") and (not ns or _NS_RE.fullmatch(ns)):
+        leaf, sep, ns = rest.partition("/")
+        if leaf in ("update", "remove") and (not sep or _NS_RE.fullmatch(ns)):
             return leaf, ns
-        if leaf in ("query", "info", "submap", "retract", "reinstate", "verdict") and not ns:
+        if leaf in ("query", "info", "submap", "retract", "reinstate", "verdict") and not sep:
             return leaf, ""
         raise BadMessage("key", f"one of {self.base}/{{update,remove}}[/<namespace>], "
                          "query, info, submap, retract, reinstate or verdict (no wildcards)",
