@@ -59,6 +59,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Client of the Monte Carlo stochastic map server (mcsm serve).",
         epilog="Exit codes: 0 ok, 1 refused by the server, 2 usage or input error, "
                "3 no reply in time, 130 interrupted.")
+    p.add_argument("--version", action="version", version=_version_text())
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     s = sub.add_parser("info", help="frames, components, N, sequence number and digest")
@@ -208,28 +209,49 @@ def _ack_text(ack: Any) -> str:
     return f"ok seq={ack.seq} {ack.kind} component={ack.component}{extra}"
 
 
-class _Progress:
-    """A one-line text progress bar on stderr, redrawn at most 5 times a second."""
+def _version_text() -> str:
+    from mcsm import __version__
+    from mcsm.core import ARITHMETIC_VERSION
+    from mcsm.wire import VERSION
 
-    def __init__(self, label: str, enabled: bool = True) -> None:
+    return (f"mcsm-client {__version__} (core arithmetic version {ARITHMETIC_VERSION}, wire "
+            f"protocol v{VERSION})")
+
+
+class _Progress:
+    """Progress over items: a tqdm bar on a terminal; otherwise (a log, a pipe) a plain line
+    ``label: done/total (rate/s)`` every 10 s and at the end of a longer run, never ``\\r``."""
+
+    def __init__(self, label: str, enabled: bool = True, every_s: float = 10.0) -> None:
         self.label = label
         self.enabled = enabled
-        self._last = 0.0
-        self._t0 = time.monotonic()
+        self.every_s = every_s
+        self._tty = sys.stderr.isatty()
+        self._bar: Any = None
+        self._t0 = self._last = time.monotonic()
+        self._lines = 0
 
     def __call__(self, done: int, total: int, *_: Any) -> None:
-        now = time.monotonic()
-        if not self.enabled or (now - self._last < 0.2 and done < total):
+        if not self.enabled:
             return
-        self._last = now
-        width = 30
-        frac = done / total if total else 1.0
-        bar = "#" * int(width * frac) + "." * (width - int(width * frac))
-        rate = done / max(now - self._t0, 1e-9)
-        sys.stderr.write(f"\r{self.label} [{bar}] {done}/{total} ({rate:.0f}/s)")
-        if done >= total:
-            sys.stderr.write("\n")
-        sys.stderr.flush()
+        if self._tty:
+            if self._bar is None:
+                from tqdm import tqdm
+
+                self._bar = tqdm(total=total, desc=self.label, file=sys.stderr,
+                                 dynamic_ncols=True)
+            self._bar.update(done - self._bar.n)
+            if done >= total:
+                self._bar.close()
+                self.enabled = False
+            return
+        now = time.monotonic()
+        if now - self._last >= self.every_s or (done >= total and self._lines):
+            self._last = now
+            self._lines += 1
+            rate = done / max(now - self._t0, 1e-9)
+            sys.stderr.write(f"{self.label}: {done}/{total} ({rate:.0f}/s)\n")
+            sys.stderr.flush()
 
 
 # ----------------------------------------------------------------------------- commands
