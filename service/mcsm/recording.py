@@ -1,12 +1,12 @@
 """MCAP recording of every accepted input, and deterministic replay.
 
-A recording is a chunked, indexed MCAP file with CRCs (chunk and data section) and a summary
-when it was closed cleanly. The server calls :meth:`Recorder.input` before it acknowledges;
-that call ends the open chunk (``Writer.flush()``), so every acknowledged input is in the file
-as a complete chunk with its message index: a SIGKILL loses nothing acknowledged, and
-``mcsm recover`` turns the cut file into a clean indexed one. Message encoding ``msgpack``;
-one channel per kind of record, each with a ``jsonschema`` schema record (each schema once)
-embedding the schema from ``schemas/``:
+A recording is a chunked, indexed MCAP file (lz4 chunk compression) with CRCs (chunk and data
+section) and a summary when it was closed cleanly. The server calls :meth:`Recorder.input`
+before it acknowledges; that call ends the open chunk (``Writer.flush()``), so every
+acknowledged input is in the file as a complete chunk with its message index: a SIGKILL loses
+nothing acknowledged, and ``mcsm recover`` turns the cut file into a clean indexed one.
+Message encoding ``msgpack``; one channel per kind of record, each with a ``jsonschema``
+schema record (each schema once) embedding the schema from ``schemas/``:
 
 ==========================  ===================================================================
 topic                       message
@@ -72,9 +72,12 @@ MAX_RECORD_BYTES = 2 * wire.MAX_PAYLOAD_BYTES
 DEFAULT_LRU = 10_000
 #: version of the file layout, in the ``mcsm`` metadata record ("mcsm recording v2")
 FORMAT_VERSION = 2
-#: "indexed" (chunked, indexes, CRCs; the default) or "flat" (the unchunked layout of format 1,
-#: kept selectable only so that benchmarks can compare the two in one run)
-LAYOUTS = ("indexed", "flat")
+#: "indexed-lz4" (chunked, indexes, CRCs, lz4 chunk compression; the default), "indexed" (the
+#: same uncompressed), "indexed-zstd", or "flat" (the unchunked layout of format 1, kept
+#: selectable only so that benchmarks can compare them in one run); docs/recordings.md has the
+#: measurements behind the default: lz4 halves planar maps' files and costs ~0.03-0.1 ms/input
+LAYOUTS = ("indexed-lz4", "indexed", "indexed-zstd", "flat")
+DEFAULT_LAYOUT = "indexed-lz4"
 LAYOUT_ENV = "MCSM_RECORDING_LAYOUT"
 #: arithmetic version of a recording that does not say (made before the field existed)
 LEGACY_ARITHMETIC_VERSION = 1
@@ -185,9 +188,9 @@ def decode_input(op: str, payload: bytes, n_samples: int) -> Any:
 def _new_writer(fh: BinaryIO, layout: str) -> Writer:
     if layout == "flat":
         return Writer(fh, use_chunking=False, enable_crcs=True)
-    # one chunk per flush (each input): compression would cost time on every ack for about 4 %
-    # on float64 samples (docs/recordings.md), so chunks are stored uncompressed
-    return Writer(fh, use_chunking=True, compression=CompressionType.NONE, enable_crcs=True,
+    compression = {"indexed": CompressionType.NONE, "indexed-lz4": CompressionType.LZ4,
+                   "indexed-zstd": CompressionType.ZSTD}[layout]
+    return Writer(fh, use_chunking=True, compression=compression, enable_crcs=True,
                   enable_data_crcs=True)
 
 
@@ -198,8 +201,9 @@ class Recorder:
     ----------
     path : the new file (refused if it exists)
     fsync : also ``os.fsync`` after each input (survives power loss; ~4 ms per message here)
-    layout : ``"indexed"`` (default) or ``"flat"`` (format 1, for benchmark comparisons only);
-        the environment variable ``MCSM_RECORDING_LAYOUT`` sets the default
+    layout : one of :data:`LAYOUTS` (default ``"indexed-lz4"``; ``"flat"`` is format 1, for
+        benchmark comparisons only); the environment variable ``MCSM_RECORDING_LAYOUT`` sets
+        the default
 
     Raises
     ------
@@ -210,7 +214,7 @@ class Recorder:
     def __init__(self, path: str | os.PathLike[str], *, fsync: bool = False,
                  layout: str | None = None) -> None:
         self.path = Path(path)
-        self.layout = layout or os.environ.get(LAYOUT_ENV) or "indexed"
+        self.layout = layout or os.environ.get(LAYOUT_ENV) or DEFAULT_LAYOUT
         if self.layout not in LAYOUTS:
             raise RecordingError(str(self.path), f"unknown recording layout {self.layout!r} "
                                  f"(expected one of {', '.join(LAYOUTS)})")
@@ -228,7 +232,7 @@ class Recorder:
                 schema_ids[name] = self._w.register_schema(name, "jsonschema",
                                                            schema_bytes(filename))
             self._channels[topic] = self._w.register_channel(topic, "msgpack", schema_ids[name])
-        fmt = FORMAT_VERSION if self.layout == "indexed" else 1
+        fmt = 1 if self.layout == "flat" else FORMAT_VERSION
         self._w.add_metadata("mcsm", {"software": f"mcsm {__version__}",
                                       "format": f"mcsm recording v{fmt}",
                                       "arithmetic_version": str(ARITHMETIC_VERSION)})
@@ -727,8 +731,7 @@ def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str],
     if out.exists():
         raise RecordingError(str(out), "exists; refusing to overwrite")
     with open(out, "xb") as fo:
-        w = Writer(fo, use_chunking=True, compression=CompressionType.NONE, enable_crcs=True,
-                   enable_data_crcs=True)
+        w = _new_writer(fo, DEFAULT_LAYOUT)
         w.start(profile="", library=f"mcsm {__version__} recover")
         schema_ids: dict[tuple[str, str, bytes], int] = {}
         channel_ids: dict[tuple[str, str, int], int] = {}
