@@ -188,10 +188,10 @@ def stats(xs: list[float]) -> dict[str, float]:
 
 def run_config(name: str, n: int, setup: list[Op], ops: list[Op], repeats: int,
                workdir: Path, rng: np.random.Generator, query_pair: tuple[str, str],
-               n_queries: int, layout: str = "indexed-lz4") -> dict[str, Any]:
+               n_queries: int, layout: str = "indexed-lz4", tag: str = "") -> dict[str, Any]:
     per = len(ops) // repeats
     batches = [ops[k * per:(k + 1) * per] for k in range(repeats)]
-    proc, ep, rec = start_server(workdir, n, f"{name}-{layout}", layout)
+    proc, ep, rec = start_server(workdir, n, f"{name}-{layout}{tag}", layout)
     try:
         with MapClient(connect=ep, timeout_s=60) as c:
             cpu0 = cpu_s(proc.pid)
@@ -250,6 +250,9 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0] if __doc__ else None)
     p.add_argument("--samples", type=int, default=1000)
     p.add_argument("--repeats", type=int, default=7)
+    p.add_argument("--rounds", type=int, default=1,
+                   help="run every configuration and layout this many times, interleaved "
+                        "(the layout order alternates per round); the summary takes medians")
     p.add_argument("--quick", action="store_true", help="fewer operations (a smoke run)")
     p.add_argument("--layouts", default="indexed-lz4",
                    help="comma-separated recording layouts to compare: flat (format 1), "
@@ -270,25 +273,29 @@ def main() -> None:
         s_setup, s_ops = small_map_ops(rng, n, small_steps)
         o_setup, o_ops = odometry_ops(rng, n, (15 if args.quick else 60) * reps // 2)
         b_setup, b_ops = frames200_ops(rng, n, big_steps)
-        for layout in layouts:  # the same operations for every layout
-            results.append(run_config("small", n, s_setup, s_ops, reps, work, rng,
-                                      ("lm0", "lm3"), 100 if args.quick else 500, layout))
-            results.append(run_config("odometry", n, o_setup, o_ops, reps, work, rng,
-                                      ("lm0", "lm3"), 50, layout))
-            results.append(run_config("frames200", n, b_setup, b_ops, reps, work, rng,
-                                      ("f150", "f190"), 50 if args.quick else 200, layout))
+        configs = [("small", s_setup, s_ops, ("lm0", "lm3"), 100 if args.quick else 500),
+                   ("odometry", o_setup, o_ops, ("lm0", "lm3"), 50),
+                   ("frames200", b_setup, b_ops, ("f150", "f190"), 50 if args.quick else 200)]
+        for k in range(args.rounds):
+            for name, setup, ops, pair, nq in configs:
+                # the same operations for every layout, one layout right after the other
+                for layout in (layouts if k % 2 == 0 else layouts[::-1]):
+                    r = run_config(name, n, setup, ops, reps, work, rng, pair, nq, layout,
+                                   f"-{k}")
+                    r["round"] = k
+                    results.append(r)
     for r in results:
         print(json.dumps(r))
     print()
-    hdr = (f"{'config':<10} {'layout':<8} {'kB/op':>6} {'frames':>6} {'acked ops/s':>16} "
+    hdr = (f"{'config':<10} {'layout':<12} {'kB/op':>6} {'frames':>6} {'acked ops/s':>16} "
            f"{'core-only ops/s':>16} "
            f"{'replay/live (file)':>18} {'CPU ms/op srv|replay':>20} {'query ms (p90)':>15} "
            f"{'marginal ms':>11}")
     print(hdr)
-    for r in results:
+    for r in sorted(results, key=lambda r: (r["config"], r["layout"], r["round"])):
         a, c, q, m = (r["acked_ops_per_s"], r["core_only_ops_per_s"], r["query_rtt_ms"],
                       r["marginal_rtt_ms"])
-        print(f"{r['config']:<10} {r['layout']:<8} {r['recording_bytes_per_op'] / 1e3:>6.1f} "
+        print(f"{r['config']:<10} {r['layout']:<12} {r['recording_bytes_per_op'] / 1e3:>6.1f} "
               f"{r['frames_at_end']:>6} "
               f"{a['median']:>7.0f} [{a['p10']:.0f}-{a['p90']:.0f}] "
               f"{c['median']:>7.0f} [{c['p10']:.0f}-{c['p90']:.0f}] "
@@ -304,6 +311,17 @@ def main() -> None:
           "threads: zenoh, decode, core, recording) vs of replay, per input of the same file; "
           "the fair comparison when the machine is shared. kB/op: recording size per input "
           "(whole file, checkpoints included).")
+    if args.rounds > 1 or len(layouts) > 1:
+        print(f"\nsummary over {args.rounds} round(s): median of the per-round medians")
+        print(f"{'config':<10} {'layout':<12} {'acked ops/s':>11} {'srv CPU ms/op':>13} "
+              f"{'kB/op':>6}")
+        for name in dict.fromkeys(r["config"] for r in results):
+            for layout in layouts:
+                rows = [r for r in results if r["config"] == name and r["layout"] == layout]
+                acked = statistics.median(r["acked_ops_per_s"]["median"] for r in rows)
+                cpu = statistics.median(r["server_cpu_ms_per_op"] for r in rows)
+                kb = rows[0]["recording_bytes_per_op"] / 1e3
+                print(f"{name:<10} {layout:<12} {acked:>11.0f} {cpu:>13.2f} {kb:>6.1f}")
 
 
 if __name__ == "__main__":

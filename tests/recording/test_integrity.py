@@ -430,3 +430,18 @@ def test_progress_is_a_bar_on_a_terminal_and_lines_in_a_log() -> None:
     b(5, 10)
     b(10, 10)
     assert "replay z" in tty.getvalue() and "100%" in tty.getvalue()
+
+
+def test_config_record_matches_its_schema(tmp_path: Path) -> None:
+    from jsonschema import Draft202012Validator
+
+    path = tmp_path / "r.mcap"
+    record_session(path, N, 2, seed=8806)
+    config = next(r.data for r in RecordingReader(path) if r.topic == TOPIC_CONFIG)
+    assert config["arithmetic_version"] == ARITHMETIC_VERSION
+    schema = json.loads(schema_bytes("record_config.json"))
+    assert list(Draft202012Validator(schema).iter_errors(config)) == []
+    rd = RecordingReader(path)
+    list(rd)
+    assert rd.metadata["mcsm"]["arithmetic_version"] == str(ARITHMETIC_VERSION)
+    assert rd.metadata["mcsm"]["format"] == "mcsm recording v2"
