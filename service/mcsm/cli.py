@@ -347,8 +347,10 @@ def replay_cmd(args: argparse.Namespace) -> int:
                           "seq": {n: s.seq for n, s in rep.states.items()},
                           "elapsed_s": rep.elapsed_s, "ops_per_s": speed}))
         return code
+    not_compared = (f", {rep.checkpoints_other_arithmetic} not comparable (other arithmetic)"
+                    if rep.checkpoints_other_arithmetic else "")
     print(f"{args.file}: {rep.n_inputs} inputs replayed in {rep.elapsed_s:.3f} s "
-          f"({speed:.0f} ops/s); {rep.checkpoints_ok}/{n_cp} checkpoints match")
+          f"({speed:.0f} ops/s); {rep.checkpoints_ok}/{n_cp} checkpoints match{not_compared}")
     for name, d in digests.items():
         print(f"map {name}: seq {rep.states[name].seq}, digest {d}")
     print(verdict)
