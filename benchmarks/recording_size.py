@@ -150,6 +150,45 @@ def compare_layouts(work: Path, n: int, iterations: int, layouts: list[str],
                   f"{layouts[0]})")
 
 
+def recorder_cpu(work: Path, n: int, layouts: list[str], repeats: int) -> None:
+    """CPU time of ``Recorder.input`` per input, in-process (no server, no network), on 3-D
+    updates and on planar ones (z, qx, qy zero), per layout."""
+    import statistics
+
+    from mcsm import StochasticMap
+    from mcsm.core.quat import qexp
+    from mcsm.recording import MapState, Recorder
+
+    rng = np.random.default_rng(11)
+
+    def sample(planar: bool) -> np.ndarray:
+        x = np.empty((n, 7))
+        x[:, :3] = [1.0, 0.0, 0.0] + 0.05 * rng.standard_normal((n, 3))
+        w = 0.01 * rng.standard_normal((n, 3))
+        if planar:
+            x[:, 2] = 0.0
+            w[:, :2] = 0.0
+        x[:, 3:] = qexp(w)
+        return x
+
+    print(f"\nRecorder.input CPU per input (N = {n}, in-process, median of {repeats} x 300)")
+    for planar in (False, True):
+        payloads = [wire.encode_update(f"i{i}", f"p{i}", f"p{i + 1}", sample(planar))
+                    for i in range(300)]
+        cpu: dict[str, list[float]] = {lay: [] for lay in layouts}
+        for k in range(repeats):
+            for lay in layouts:
+                rec = Recorder(work / f"cpu-{lay}-{planar}-{k}.mcap", layout=lay)
+                rec.config(MapState("default", StochasticMap(n)), 100)
+                t0 = time.process_time()
+                for i, pl in enumerate(payloads):
+                    rec.input("update", "default", i + 1, time.time_ns(), "s", f"i{i}", pl)
+                cpu[lay].append(1e6 * (time.process_time() - t0) / len(payloads))
+                rec.close()
+        print(f"  {'planar' if planar else '3-D':<7}" + "".join(
+            f"  {lay} {statistics.median(v):.0f} us" for lay, v in cpu.items()))
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0] if __doc__ else None)
     p.add_argument("files", nargs="*", type=Path)
@@ -169,6 +208,8 @@ def main() -> None:
         measure(record_sim(work, args.samples, args.iterations))
         measure(record_3d(work, args.samples, 60))
         if args.layouts:
+            recorder_cpu(work, args.samples, [x for x in args.layouts.split(",") if x],
+                         args.repeats)
             compare_layouts(work, args.samples, args.iterations,
                             [x for x in args.layouts.split(",") if x], args.repeats)
 

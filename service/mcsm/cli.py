@@ -100,9 +100,10 @@ def _parser() -> argparse.ArgumentParser:
     raw = argparse.RawDescriptionHelpFormatter
     r = sub.add_parser("replay", help="rebuild the maps of a recording and check its digests",
                        epilog=EXIT_CODES_HELP, formatter_class=raw)
-    r.add_argument("file", type=Path)
+    r.add_argument("file", type=Path, help="the recording (complete, cut or damaged)")
     r.add_argument("--json", action="store_true", help="print the result as one JSON line")
-    r.add_argument("--no-progress", action="store_true")
+    r.add_argument("--no-progress", action="store_true",
+                   help="no progress bar (terminal) or progress lines (log)")
 
     i = sub.add_parser("inspect", help="summarise a recording and verify its CRCs",
                        epilog=EXIT_CODES_HELP, formatter_class=raw)
@@ -112,10 +113,11 @@ def _parser() -> argparse.ArgumentParser:
     v = sub.add_parser("recover", help="write a clean, indexed copy of every complete record "
                        "of a cut or damaged recording", epilog=EXIT_CODES_HELP,
                        formatter_class=raw)
-    v.add_argument("file", type=Path, metavar="IN")
+    v.add_argument("file", type=Path, metavar="IN", help="the cut or damaged recording")
     v.add_argument("-o", "--output", type=Path, required=True, metavar="OUT",
                    help="the new file (refused if it exists)")
-    v.add_argument("--no-progress", action="store_true")
+    v.add_argument("--no-progress", action="store_true",
+                   help="no progress bar (terminal) or progress lines (log)")
 
     c = sub.add_parser("cat", help="print the inputs of a recording, one per line",
                        epilog=EXIT_CODES_HELP, formatter_class=raw)
