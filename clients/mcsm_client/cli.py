@@ -23,7 +23,9 @@ in-process map of N samples). ``--cov`` gives a full covariance (row-major) inst
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -218,6 +220,20 @@ def _version_text() -> str:
             f"protocol v{VERSION})")
 
 
+def _check_output(path: Path | None, flag: str) -> None:
+    """Refuse an output file that cannot be written, before any long run starts."""
+    if path is None:
+        return
+    parent = path.parent if str(path.parent) else Path(".")
+    if path.is_dir():
+        raise UsageError(f"{flag} {path}: is a directory")
+    if not parent.is_dir():
+        raise UsageError(f"{flag} {path}: directory {parent} does not exist")
+    if not os.access(parent, os.W_OK | os.X_OK) or (path.exists()
+                                                    and not os.access(path, os.W_OK)):
+        raise UsageError(f"{flag} {path}: not writable")
+
+
 class _Progress:
     """Progress over items: a tqdm bar on a terminal; otherwise (a log, a pipe) a plain line
     ``label: done/total (rate/s)`` every 10 s and at the end of a longer run, never ``\\r``."""
@@ -407,6 +423,10 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
     if args.iterations < 1 or args.score_every < 1 or args.landmarks < 1:
         raise UsageError("--iterations, --score-every and --landmarks must be >= 1")
+    _check_output(args.csv, "--csv")  # before the run, not after it
+    _check_output(args.png, "--png")
+    if args.png is not None and importlib.util.find_spec("matplotlib") is None:
+        raise UsageError("--png needs matplotlib (pip install -e '.[eval]')")
     cfg = SimConfig(n_iterations=args.iterations, sigma_theta_deg=args.sigma_theta_deg,
                     n_landmarks=args.landmarks, score_every=args.score_every,
                     bounded=not args.unbounded)

@@ -501,3 +501,14 @@ def test_every_layout_replays(tmp_path: Path, layout: str) -> None:
     assert rep.final_digests() == {"default": st.digest()}
     with pytest.raises(McsmError, match="unknown recording layout"):
         Recorder(tmp_path / "x.mcap", layout="chunky")
+
+
+def test_client_sim_refuses_an_unwritable_output_before_running(tmp_path: Path) -> None:
+    exe = Path(sys.executable).with_name("mcsm-client")
+    for flag in ("--png", "--csv"):
+        r = subprocess.run([str(exe), "sim", "--in-process", "16", "--iterations", "100000",
+                            flag, str(tmp_path / "missing-dir" / "out")],
+                           capture_output=True, text=True, timeout=120)
+        assert r.returncode == EXIT_USAGE, r.stderr
+        assert "does not exist" in r.stderr and "Traceback" not in r.stderr
+        assert "iteration" not in r.stdout  # refused before the run started
