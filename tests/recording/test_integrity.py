@@ -494,3 +494,33 @@ def test_client_sim_refuses_an_unwritable_output_before_running(tmp_path: Path) 
         assert r.returncode == EXIT_USAGE, r.stderr
         assert "does not exist" in r.stderr and "Traceback" not in r.stderr
         assert "iteration" not in r.stdout  # refused before the run started
+
+
+def test_cat_shows_removes_and_imports(tmp_path: Path,
+                                       capsys: pytest.CaptureFixture[str]) -> None:
+    rng = np.random.default_rng(8809)
+    other = StochasticMap(N)
+    other.update("q0", "q1", noisy_at(rng, N, [1, 0, 0]))
+    other.update("q1", "q2", noisy_at(rng, N, [1, 0, 0]))
+    sub = other.export_component("q0")
+    payloads = [("update", wire.encode_update("u1", "a", "b", noisy_at(rng, N, [1, 0, 0]))),
+                ("remove", wire.encode_remove("r1", "b")),
+                ("import", wire.encode_submap_import("i1", sub))]
+    path = tmp_path / "r.mcap"
+    rec = Recorder(path)
+    st = MapState("default", StochasticMap(N))
+    rec.config(st, 100)
+    for op, payload in payloads:
+        ack = st.apply(op, decode_input(op, payload, N))
+        rec.input(op, "default", ack.seq, 1, "t", ack.request_id, payload)
+    rec.close()
+    assert mcsm_main(["cat", str(path), "--json"]) == EXIT_OK
+    lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert [x["op"] for x in lines] == ["update", "remove", "import"]
+    assert lines[1]["frame"] == "b"
+    imp = lines[2]
+    assert imp["root"] == "q0" and imp["frames"] == ["q0", "q1", "q2"]
+    assert len(imp["edges"]) == 2 and np.asarray(imp["edges"][1]["cov"]).shape == (6, 6)
+    assert mcsm_main(["cat", str(path)]) == EXIT_OK
+    text = capsys.readouterr().out.splitlines()
+    assert text[1].startswith("default seq 2 remove b") and "3 frames" in text[2]
