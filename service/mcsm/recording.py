@@ -292,10 +292,11 @@ class ChunkPerInputWriter:
         self._record(self._schemas[sid])
         return sid
 
-    def register_channel(self, topic: str, message_encoding: str, schema_id: int) -> int:
+    def register_channel(self, topic: str, message_encoding: str, schema_id: int,
+                         metadata: dict[str, str] | None = None) -> int:
         cid = len(self._channels) + 1
         self._channels[cid] = Channel(id=cid, topic=topic, message_encoding=message_encoding,
-                                      schema_id=schema_id, metadata={})
+                                      schema_id=schema_id, metadata=dict(metadata or {}))
         self._record(self._channels[cid])
         return cid
 
@@ -357,6 +358,8 @@ class ChunkPerInputWriter:
         offsets: list[SummaryOffset] = []
 
         def group(opcode: int, records: list[Any]) -> None:
+            if not records:  # no offset for an empty group (readers flag one as an error)
+                return
             begin = rb.count
             for r in records:
                 r.write(rb)
@@ -927,8 +930,7 @@ def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str],
     if out.exists():
         raise RecordingError(str(out), "exists; refusing to overwrite")
     with open(out, "xb") as fo:
-        w = Writer(fo, compression=CompressionType.LZ4, enable_crcs=True, enable_data_crcs=True)
-        w.start(profile="", library=f"mcsm {__version__} recover")
+        w = ChunkPerInputWriter(fo, lz4=True, library=f"mcsm {__version__} recover")
         schema_ids: dict[tuple[str, str, bytes], int] = {}
         channel_ids: dict[tuple[str, str, int], int] = {}
         channels: dict[int, Channel] = {}
