@@ -1,6 +1,13 @@
 """Service throughput: acknowledged updates/s, query round trip, replay speed (prints figures).
 
-Run by hand: ``.venv/bin/python benchmarks/service_throughput.py [--samples 1000] [--quick]``.
+Run by hand: ``.venv/bin/python benchmarks/service_throughput.py [--samples 1000] [--quick]
+[--layouts flat,indexed,indexed-lz4]``.
+
+``--layouts flat,indexed-lz4`` runs every configuration once per recording layout, side by side
+in one run: ``flat`` is the unchunked layout of recording format 1 (the recorder before indexed
+recordings), ``indexed-lz4`` the chunked, indexed layout with CRCs and lz4 chunks (the
+default), ``indexed`` the same uncompressed; the layout reaches the server through the
+environment variable ``MCSM_RECORDING_LAYOUT``.
 
 A real ``mcsm serve`` subprocess (embedded Zenoh peer on a free loopback port, recording on,
 ``Writer.flush()`` before every ack) and a ``MapClient`` in this process. For each
@@ -55,7 +62,8 @@ def at(rng: np.random.Generator, n: int, t: list[float], yaw: float = 0.0) -> np
     return sample_pose(mean, NOISE_COV, n_samples=n, rng=rng)
 
 
-def start_server(workdir: Path, n: int, name: str) -> tuple[subprocess.Popen[str], str, Path]:
+def start_server(workdir: Path, n: int, name: str,
+                 layout: str = "indexed-lz4") -> tuple[subprocess.Popen[str], str, Path]:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         ep = f"tcp/127.0.0.1:{s.getsockname()[1]}"
@@ -64,7 +72,8 @@ def start_server(workdir: Path, n: int, name: str) -> tuple[subprocess.Popen[str
     proc = subprocess.Popen([sys.executable, "-m", "mcsm.cli", "serve", "--listen", ep,
                              "--samples", str(n), "--record", str(rec), "--log-level", "WARNING"],
                             stdout=subprocess.PIPE, stderr=log, text=True,
-                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
+                            env=dict(os.environ, PYTHONUNBUFFERED="1",
+                                     MCSM_RECORDING_LAYOUT=layout))
     lines: queue.Queue[str] = queue.Queue()
     assert proc.stdout is not None
     out = proc.stdout
@@ -180,10 +189,10 @@ def stats(xs: list[float]) -> dict[str, float]:
 
 def run_config(name: str, n: int, setup: list[Op], ops: list[Op], repeats: int,
                workdir: Path, rng: np.random.Generator, query_pair: tuple[str, str],
-               n_queries: int) -> dict[str, Any]:
+               n_queries: int, layout: str = "indexed-lz4", tag: str = "") -> dict[str, Any]:
     per = len(ops) // repeats
     batches = [ops[k * per:(k + 1) * per] for k in range(repeats)]
-    proc, ep, rec = start_server(workdir, n, name)
+    proc, ep, rec = start_server(workdir, n, f"{name}-{layout}{tag}", layout)
     try:
         with MapClient(connect=ep, timeout_s=60) as c:
             cpu0 = cpu_s(proc.pid)
@@ -224,7 +233,8 @@ def run_config(name: str, n: int, setup: list[Op], ops: list[Op], repeats: int,
     live_rates = [per / t for t in live]
     core_rates = [per / t for t in core]
     return {
-        "config": name, "n_samples": n, "frames_at_end": frames, "ops_per_batch": per,
+        "config": name, "layout": layout, "n_samples": n, "frames_at_end": frames,
+        "ops_per_batch": per,
         "repeats": repeats, "kinds": kinds,
         "acked_ops_per_s": stats(live_rates), "core_only_ops_per_s": stats(core_rates),
         "query_rtt_ms": stats(q_rtt), "marginal_rtt_ms": stats(m_rtt),
@@ -233,6 +243,7 @@ def run_config(name: str, n: int, setup: list[Op], ops: list[Op], repeats: int,
         "live_whole_file_ops_per_s": n_total / (setup_s + sum(live)),
         "server_cpu_ms_per_op": server_cpu_ms, "replay_cpu_ms_per_op": replay_cpu_ms,
         "recording_bytes": rec.stat().st_size,
+        "recording_bytes_per_op": rec.stat().st_size / max(1, rep.n_inputs),
     }
 
 
@@ -240,8 +251,15 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0] if __doc__ else None)
     p.add_argument("--samples", type=int, default=1000)
     p.add_argument("--repeats", type=int, default=7)
+    p.add_argument("--rounds", type=int, default=1,
+                   help="run every configuration and layout this many times, interleaved "
+                        "(the layout order alternates per round); the summary takes medians")
     p.add_argument("--quick", action="store_true", help="fewer operations (a smoke run)")
+    p.add_argument("--layouts", default="indexed-lz4",
+                   help="comma-separated recording layouts to compare: flat (format 1), "
+                        "indexed, indexed-lz4 (the default), indexed-zstd")
     args = p.parse_args()
+    layouts = [x for x in args.layouts.split(",") if x]
     n, reps = args.samples, args.repeats
     rng = np.random.default_rng(20260101)
     small_steps = (10 if args.quick else 40) * reps // 3 + 1
@@ -254,25 +272,32 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         s_setup, s_ops = small_map_ops(rng, n, small_steps)
-        results.append(run_config("small", n, s_setup, s_ops, reps, work, rng,
-                                  ("lm0", "lm3"), 100 if args.quick else 500))
         o_setup, o_ops = odometry_ops(rng, n, (15 if args.quick else 60) * reps // 2)
-        results.append(run_config("odometry", n, o_setup, o_ops, reps, work, rng,
-                                  ("lm0", "lm3"), 50))
         b_setup, b_ops = frames200_ops(rng, n, big_steps)
-        results.append(run_config("frames200", n, b_setup, b_ops, reps, work, rng,
-                                  ("f150", "f190"), 50 if args.quick else 200))
+        configs = [("small", s_setup, s_ops, ("lm0", "lm3"), 100 if args.quick else 500),
+                   ("odometry", o_setup, o_ops, ("lm0", "lm3"), 50),
+                   ("frames200", b_setup, b_ops, ("f150", "f190"), 50 if args.quick else 200)]
+        for k in range(args.rounds):
+            for name, setup, ops, pair, nq in configs:
+                # the same operations for every layout, one layout right after the other
+                for layout in (layouts if k % 2 == 0 else layouts[::-1]):
+                    r = run_config(name, n, setup, ops, reps, work, rng, pair, nq, layout,
+                                   f"-{k}")
+                    r["round"] = k
+                    results.append(r)
     for r in results:
         print(json.dumps(r))
     print()
-    hdr = (f"{'config':<10} {'frames':>6} {'acked ops/s':>16} {'core-only ops/s':>16} "
+    hdr = (f"{'config':<10} {'layout':<12} {'kB/op':>6} {'frames':>6} {'acked ops/s':>16} "
+           f"{'core-only ops/s':>16} "
            f"{'replay/live (file)':>18} {'CPU ms/op srv|replay':>20} {'query ms (p90)':>15} "
            f"{'marginal ms':>11}")
     print(hdr)
-    for r in results:
+    for r in sorted(results, key=lambda r: (r["config"], r["layout"], r["round"])):
         a, c, q, m = (r["acked_ops_per_s"], r["core_only_ops_per_s"], r["query_rtt_ms"],
                       r["marginal_rtt_ms"])
-        print(f"{r['config']:<10} {r['frames_at_end']:>6} "
+        print(f"{r['config']:<10} {r['layout']:<12} {r['recording_bytes_per_op'] / 1e3:>6.1f} "
+              f"{r['frames_at_end']:>6} "
               f"{a['median']:>7.0f} [{a['p10']:.0f}-{a['p90']:.0f}] "
               f"{c['median']:>7.0f} [{c['p10']:.0f}-{c['p90']:.0f}] "
               f"{r['replay_ops_per_s']:>7.0f}/{r['live_whole_file_ops_per_s']:<7.0f}"
@@ -285,7 +310,19 @@ def main() -> None:
           "of mcsm.recording.replay over the whole recording vs the live run that wrote it "
           "(setup included), and their ratio. CPU ms/op: CPU time of the server process (all "
           "threads: zenoh, decode, core, recording) vs of replay, per input of the same file; "
-          "the fair comparison when the machine is shared.")
+          "the fair comparison when the machine is shared. kB/op: recording size per input "
+          "(whole file, checkpoints included).")
+    if args.rounds > 1 or len(layouts) > 1:
+        print(f"\nsummary over {args.rounds} round(s): median of the per-round medians")
+        print(f"{'config':<10} {'layout':<12} {'acked ops/s':>11} {'srv CPU ms/op':>13} "
+              f"{'kB/op':>6}")
+        for name in dict.fromkeys(r["config"] for r in results):
+            for layout in layouts:
+                rows = [r for r in results if r["config"] == name and r["layout"] == layout]
+                acked = statistics.median(r["acked_ops_per_s"]["median"] for r in rows)
+                cpu = statistics.median(r["server_cpu_ms_per_op"] for r in rows)
+                kb = rows[0]["recording_bytes_per_op"] / 1e3
+                print(f"{name:<10} {layout:<12} {acked:>11.0f} {cpu:>13.2f} {kb:>6.1f}")
 
 
 if __name__ == "__main__":

@@ -27,7 +27,9 @@ message says which), 130 interrupted.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -70,6 +72,7 @@ def build_parser() -> argparse.ArgumentParser:
                "3 no answer in time (no server, access denied, or slow), 130 interrupted. "
                "Connection flags go before or after the command.")
     _add_common(p)
+    p.add_argument("--version", action="version", version=_version_text())
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     s = sub.add_parser("info", help="frames, components, N, sequence number and digest")
@@ -242,28 +245,63 @@ def _ack_text(ack: Any) -> str:
     return f"ok seq={ack.seq} {ack.kind} component={ack.component}{extra}"
 
 
-class _Progress:
-    """A one-line text progress bar on stderr, redrawn at most 5 times a second."""
+def _version_text() -> str:
+    from mcsm import __version__
+    from mcsm.core import ARITHMETIC_VERSION
+    from mcsm.wire import VERSION
 
-    def __init__(self, label: str, enabled: bool = True) -> None:
+    return (f"mcsm-client {__version__} (core arithmetic version {ARITHMETIC_VERSION}, wire "
+            f"protocol v{VERSION})")
+
+
+def _check_output(path: Path | None, flag: str) -> None:
+    """Refuse an output file that cannot be written, before any long run starts."""
+    if path is None:
+        return
+    parent = path.parent if str(path.parent) else Path(".")
+    if path.is_dir():
+        raise UsageError(f"{flag} {path}: is a directory")
+    if not parent.is_dir():
+        raise UsageError(f"{flag} {path}: directory {parent} does not exist")
+    if not os.access(parent, os.W_OK | os.X_OK) or (path.exists()
+                                                    and not os.access(path, os.W_OK)):
+        raise UsageError(f"{flag} {path}: not writable")
+
+
+class _Progress:
+    """Progress over items: a tqdm bar on a terminal; otherwise (a log, a pipe) a plain line
+    ``label: done/total (rate/s)`` every 10 s and at the end of a longer run, never ``\\r``."""
+
+    def __init__(self, label: str, enabled: bool = True, every_s: float = 10.0) -> None:
         self.label = label
         self.enabled = enabled
-        self._last = 0.0
-        self._t0 = time.monotonic()
+        self.every_s = every_s
+        self._tty = sys.stderr.isatty()
+        self._bar: Any = None
+        self._t0 = self._last = time.monotonic()
+        self._lines = 0
 
     def __call__(self, done: int, total: int, *_: Any) -> None:
-        now = time.monotonic()
-        if not self.enabled or (now - self._last < 0.2 and done < total):
+        if not self.enabled:
             return
-        self._last = now
-        width = 30
-        frac = done / total if total else 1.0
-        bar = "#" * int(width * frac) + "." * (width - int(width * frac))
-        rate = done / max(now - self._t0, 1e-9)
-        sys.stderr.write(f"\r{self.label} [{bar}] {done}/{total} ({rate:.0f}/s)")
-        if done >= total:
-            sys.stderr.write("\n")
-        sys.stderr.flush()
+        if self._tty:
+            if self._bar is None:
+                from tqdm import tqdm
+
+                self._bar = tqdm(total=total, desc=self.label, file=sys.stderr,
+                                 dynamic_ncols=True)
+            self._bar.update(done - self._bar.n)
+            if done >= total:
+                self._bar.close()
+                self.enabled = False
+            return
+        now = time.monotonic()
+        if now - self._last >= self.every_s or (done >= total and self._lines):
+            self._last = now
+            self._lines += 1
+            rate = done / max(now - self._t0, 1e-9)
+            sys.stderr.write(f"{self.label}: {done}/{total} ({rate:.0f}/s)\n")
+            sys.stderr.flush()
 
 
 # ----------------------------------------------------------------------------- commands
@@ -474,6 +512,10 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
     if args.iterations < 1 or args.score_every < 1 or args.landmarks < 1:
         raise UsageError("--iterations, --score-every and --landmarks must be >= 1")
+    _check_output(args.csv, "--csv")  # before the run, not after it
+    _check_output(args.png, "--png")
+    if args.png is not None and importlib.util.find_spec("matplotlib") is None:
+        raise UsageError("--png needs matplotlib (pip install -e '.[eval]')")
     cfg = SimConfig(n_iterations=args.iterations, sigma_theta_deg=args.sigma_theta_deg,
                     n_landmarks=args.landmarks, score_every=args.score_every,
                     bounded=not args.unbounded)

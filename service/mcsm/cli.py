@@ -1,21 +1,23 @@
-"""``mcsm``: run the map server, replay and inspect its recordings.
+"""``mcsm``: run the map server, replay, inspect, recover and print its recordings.
 
 ::
 
     mcsm serve [--listen tcp/127.0.0.1:7457] [--map NAME]... [--samples N]
                [--method joint|paper] [--record PATH.mcap] [--restore PATH.mcap]
                [--zenoh-config FILE]
-    mcsm replay FILE.mcap
-    mcsm inspect FILE.mcap
+    mcsm replay FILE.mcap [--json]
+    mcsm inspect FILE.mcap [--json]
+    mcsm recover IN.mcap -o OUT.mcap
+    mcsm cat FILE.mcap [--json] [--samples]
     mcsm plot FILE.mcap -o map.png [--map NAME] [--at SEQ] [--samples] [--truth CSV]
               [--view auto|top|xz|yz|3d]
     mcsm export-foxglove FILE.mcap -o scene.mcap [--every K] [--map NAME]
     mcsm view [--connect ENDPOINT] [--map NAME] [--foxglove-port P]
+    mcsm --version
 
 ``serve`` prints one line ``listening on <endpoint>`` on stdout when it is ready, and closes
-the recording cleanly on SIGINT or SIGTERM. ``replay`` exits 0 when every checkpoint and the
-final state match (a truncated file is replayed up to its last complete record), 1 on a
-divergence, 2 when the file cannot be read.
+the recording cleanly on SIGINT or SIGTERM. Exit codes: see :data:`EXIT_CODES_HELP` (also in
+``mcsm --help`` and docs/recordings.md).
 """
 
 from __future__ import annotations
@@ -36,12 +38,34 @@ from mcsm.errors import McsmError
 
 log = logging.getLogger("mcsm")
 
+# exit codes of every subcommand (documented in docs/recordings.md; keep them stable)
+EXIT_OK = 0
+EXIT_DIVERGED = 1  # replay: a checkpoint, a sequence number or an input does not match
+EXIT_USAGE = 2  # bad arguments, missing or unreadable file, not a recording, unwritable output
+EXIT_RECORDING_FAILED = 3  # serve: the recording could not be written; serving stopped
+EXIT_CUT = 4  # the file ends before its clean close (SIGKILL, full disk): the prefix was used
+EXIT_DAMAGED = 5  # a CRC does not match or a record does not decode: read up to the damage
+EXIT_OTHER_ARITHMETIC = 6  # replay: recorded by another arithmetic version; not compared
+
+EXIT_CODES_HELP = """exit codes:
+  0  success (replay: every checkpoint matches and the file is complete)
+  1  replay diverged (a digest, a sequence number or an input does not match)
+  2  usage error: bad arguments, missing or unreadable file, not an mcsm recording,
+     output path exists or is not writable
+  3  serve: the recording could not be written (serving stopped)
+  4  the recording is cut (no clean close): inspect/replay used every complete record
+  5  the recording is damaged (CRC mismatch or undecodable record): read up to the damage
+  6  replay: recorded by another arithmetic version of the core; digests not comparable
+(replay reports the first that applies in the order 1, 5, 4, 6)"""
+
 
 def _parser() -> argparse.ArgumentParser:
     from mcsm.connect import add_connection_args
 
     p = argparse.ArgumentParser(prog="mcsm", description=__doc__.split("\n")[0] if __doc__
-                                else None)
+                                else None, epilog=EXIT_CODES_HELP,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--version", action="version", version=_version_text())
     sub = p.add_subparsers(dest="command", required=True)
 
     s = sub.add_parser("serve", help="run the map server (embedded Zenoh peer)")
@@ -94,14 +118,34 @@ def _parser() -> argparse.ArgumentParser:
                    help="remember at most this many request ids per map (default 100000)")
     s.add_argument("--log-level", default="INFO")
 
-    r = sub.add_parser("replay", help="rebuild the maps of a recording and check its digests")
-    r.add_argument("file", type=Path)
+    raw = argparse.RawDescriptionHelpFormatter
+    r = sub.add_parser("replay", help="rebuild the maps of a recording and check its digests",
+                       epilog=EXIT_CODES_HELP, formatter_class=raw)
+    r.add_argument("file", type=Path, help="the recording (complete, cut or damaged)")
     r.add_argument("--json", action="store_true", help="print the result as one JSON line")
-    r.add_argument("--no-progress", action="store_true")
+    r.add_argument("--no-progress", action="store_true",
+                   help="no progress bar (terminal) or progress lines (log)")
 
-    i = sub.add_parser("inspect", help="summarise a recording")
+    i = sub.add_parser("inspect", help="summarise a recording and verify its CRCs",
+                       epilog=EXIT_CODES_HELP, formatter_class=raw)
     i.add_argument("file", type=Path)
     i.add_argument("--json", action="store_true")
+
+    v = sub.add_parser("recover", help="write a clean, indexed copy of every complete record "
+                       "of a cut or damaged recording", epilog=EXIT_CODES_HELP,
+                       formatter_class=raw)
+    v.add_argument("file", type=Path, metavar="IN", help="the cut or damaged recording")
+    v.add_argument("-o", "--output", type=Path, required=True, metavar="OUT",
+                   help="the new file (refused if it exists)")
+    v.add_argument("--no-progress", action="store_true",
+                   help="no progress bar (terminal) or progress lines (log)")
+
+    c = sub.add_parser("cat", help="print the inputs of a recording, one per line",
+                       epilog=EXIT_CODES_HELP, formatter_class=raw)
+    c.add_argument("file", type=Path)
+    c.add_argument("--json", action="store_true", help="one JSON object per line")
+    c.add_argument("--samples", action="store_true",
+                   help="print every sample (default: the mean and covariance of each AT)")
 
     from mcsm.viz.commands import add_parsers as add_viz_parsers
 
@@ -120,6 +164,10 @@ def main(argv: list[str] | None = None) -> int:
             return serve(args)
         if args.command == "replay":
             return replay_cmd(args)
+        if args.command == "recover":
+            return recover_cmd(args)
+        if args.command == "cat":
+            return cat_cmd(args)
         if args.command in ("plot", "export-foxglove", "view"):
             from mcsm.viz.commands import run as run_viz
 
@@ -240,44 +288,131 @@ def serve(args: argparse.Namespace) -> int:
             signal.signal(sig, handler)
 
 
+# ------------------------------------------------------------------------------------ common
+def _version_text() -> str:
+    from mcsm import __version__
+    from mcsm.core import ARITHMETIC_VERSION
+
+    return (f"mcsm {__version__} (core arithmetic version {ARITHMETIC_VERSION}, wire protocol "
+            f"v{wire.VERSION}, recording format v2)")
+
+
+def _input_file(cmd: str, path: Path) -> str | None:
+    """Why ``path`` cannot be read as an input file (None if it can)."""
+    if not path.exists():
+        return f"mcsm {cmd}: {path}: no such file"
+    if path.is_dir():
+        return f"mcsm {cmd}: {path}: is a directory, not a recording"
+    try:
+        with open(path, "rb"):
+            pass
+    except OSError as exc:
+        return f"mcsm {cmd}: {path}: cannot open: {exc.strerror or exc}"
+    return None
+
+
+def _output_file(cmd: str, path: Path) -> str | None:
+    """Why ``path`` cannot be written as a new output file (None if it can); checked before
+    any long work starts."""
+    import os
+
+    if path.exists():
+        return f"mcsm {cmd}: {path}: exists; refusing to overwrite"
+    parent = path.parent if str(path.parent) else Path(".")
+    if not parent.is_dir():
+        return f"mcsm {cmd}: {path}: directory {parent} does not exist"
+    if not os.access(parent, os.W_OK | os.X_OK):
+        return f"mcsm {cmd}: {path}: directory {parent} is not writable"
+    return None
+
+
+def _progress(args: argparse.Namespace, label: str) -> Any:
+    from mcsm.recording import progress_bar
+
+    return None if getattr(args, "no_progress", False) else progress_bar(label=label)
+
+
+def _state_line(complete: bool, cut: bool, damage: str | None, tail: str | None) -> str:
+    if complete:
+        return "complete"
+    if damage is not None:
+        return f"DAMAGED: {damage}"
+    if cut:
+        return f"CUT (no clean close): {tail}"
+    return "not read to the end"
+
+
 # ------------------------------------------------------------------------------------ replay
 def replay_cmd(args: argparse.Namespace) -> int:
-    from mcsm.recording import RecordingError, progress_bar, replay
+    from mcsm.core import ARITHMETIC_VERSION
+    from mcsm.recording import RecordingError, replay
 
+    why = _input_file("replay", args.file)
+    if why:
+        print(why, file=sys.stderr)
+        return EXIT_USAGE
+    bar = _progress(args, f"replay {args.file.name}")
     try:
-        rep = replay(args.file, progress=None if args.no_progress else progress_bar())
+        rep = replay(args.file, progress=bar)
     except (RecordingError, OSError) as exc:
-        if not args.no_progress:
-            sys.stderr.write("\n")
         print(f"mcsm replay: cannot read {args.file}: {exc}", file=sys.stderr)
-        return 2
-    if not args.no_progress:
-        sys.stderr.write("\n")
+        return EXIT_USAGE
+    finally:
+        if bar is not None:
+            bar.close()
     digests = rep.final_digests()
     speed = rep.n_inputs / rep.elapsed_s if rep.elapsed_s > 0 else float("inf")
+    other = rep.other_arithmetic
+    n_cp = len(rep.checkpoints)
+    if rep.divergence is not None:
+        code, status = EXIT_DIVERGED, "diverged"
+        verdict = f"DIVERGED: {rep.divergence}"
+    elif rep.damage is not None:
+        code, status = EXIT_DAMAGED, "damaged"
+        verdict = (f"DAMAGED: {rep.damage}; replayed {rep.n_inputs} inputs and verified "
+                   f"{rep.checkpoints_ok} checkpoints before the damage (`mcsm recover` saves "
+                   "the intact records)")
+    elif rep.cut:
+        code, status = EXIT_CUT, "cut"
+        verdict = (f"CUT: the file ends without a clean close ({rep.tail_error}); replayed "
+                   f"{rep.n_inputs} inputs and verified {rep.checkpoints_ok} checkpoints "
+                   "before the cut; anything after it is not in the file")
+    elif other:
+        code, status = EXIT_OTHER_ARITHMETIC, "other_arithmetic"
+        versions = ", ".join(f"map {n!r} version {v}" for n, v in other.items())
+        verdict = (f"OTHER ARITHMETIC: recorded by arithmetic version(s) {versions}; this mcsm "
+                   f"computes with version {ARITHMETIC_VERSION}, so its digests cannot be "
+                   f"reproduced here (not a divergence): {rep.checkpoints_other_arithmetic} "
+                   "checkpoints not compared")
+    else:
+        code, status = EXIT_OK, "identical"
+        verdict = "identical"
     if args.json:
-        print(json.dumps({"file": str(args.file), "identical": rep.identical,
-                          "divergence": rep.divergence, "inputs": rep.n_inputs,
-                          "checkpoints": len(rep.checkpoints),
-                          "checkpoints_ok": rep.checkpoints_ok, "complete": rep.complete,
-                          "tail_error": rep.tail_error, "digests": digests,
+        print(json.dumps({"file": str(args.file), "status": status, "exit_code": code,
+                          "identical": code == EXIT_OK, "divergence": rep.divergence,
+                          "inputs": rep.n_inputs, "checkpoints": n_cp,
+                          "checkpoints_ok": rep.checkpoints_ok,
+                          "checkpoints_other_arithmetic": rep.checkpoints_other_arithmetic,
+                          "complete": rep.complete, "cut": rep.cut, "damage": rep.damage,
+                          "tail_error": rep.tail_error,
+                          "arithmetic_versions": rep.arithmetic_versions,
+                          "arithmetic_version_here": ARITHMETIC_VERSION, "digests": digests,
                           "seq": {n: s.seq for n, s in rep.states.items()},
                           "elapsed_s": rep.elapsed_s, "ops_per_s": speed}))
-    else:
-        print(f"{args.file}: {rep.n_inputs} inputs replayed in {rep.elapsed_s:.3f} s "
-              f"({speed:.0f} ops/s); {rep.checkpoints_ok}/{len(rep.checkpoints)} checkpoints "
-              "match")
-        if not rep.complete:
-            print(f"warning: recording is truncated (no clean close): {rep.tail_error}; "
-                  "replayed every complete record before the cut")
-        for name, d in digests.items():
-            print(f"map {name}: seq {rep.states[name].seq}, digest {d}")
-        print("identical" if rep.identical else f"DIVERGED: {rep.divergence}")
-    return 0 if rep.identical else 1
+        return code
+    not_compared = (f", {rep.checkpoints_other_arithmetic} not comparable (other arithmetic)"
+                    if rep.checkpoints_other_arithmetic else "")
+    print(f"{args.file}: {rep.n_inputs} inputs replayed in {rep.elapsed_s:.3f} s "
+          f"({speed:.0f} ops/s); {rep.checkpoints_ok}/{n_cp} checkpoints match{not_compared}")
+    for name, d in digests.items():
+        print(f"map {name}: seq {rep.states[name].seq}, digest {d}")
+    print(verdict)
+    return code
 
 
 # ------------------------------------------------------------------------------------ inspect
 def inspect_cmd(args: argparse.Namespace) -> int:
+    from mcsm.core import ARITHMETIC_VERSION
     from mcsm.recording import (
         TOPIC_CHECKPOINT,
         TOPIC_CONFIG,
@@ -286,6 +421,10 @@ def inspect_cmd(args: argparse.Namespace) -> int:
         RecordingReader,
     )
 
+    why = _input_file("inspect", args.file)
+    if why:
+        print(why, file=sys.stderr)
+        return EXIT_USAGE
     reader = RecordingReader(args.file)
     maps: dict[str, dict[str, Any]] = {}
     times: list[int] = []
@@ -295,11 +434,13 @@ def inspect_cmd(args: argparse.Namespace) -> int:
             name = str(d.get("map"))
             m = maps.setdefault(name, {"options": None, "ops": Counter(), "kinds": Counter(),
                                        "frames": set(), "checkpoints": [], "last_seq": 0,
-                                       "senders": Counter()})
+                                       "senders": Counter(), "arithmetic_version": None})
             times.append(item.log_time_ns)
             if item.topic == TOPIC_CONFIG:
                 m["options"] = d.get("options")
                 m["restored_from"] = d.get("restored_from")
+                m["arithmetic_version"] = d.get("arithmetic_version",
+                                                reader.arithmetic_version)
             elif item.topic == TOPIC_CHECKPOINT:
                 m["checkpoints"].append((d.get("seq"), d.get("digest"), d.get("reason")))
             elif item.topic in TOPIC_OPS:
@@ -321,24 +462,48 @@ def inspect_cmd(args: argparse.Namespace) -> int:
                     m["frames"].update(map(str, req.get("submap", {}).get("frames", [])))
     except (RecordingError, OSError) as exc:
         print(f"mcsm inspect: cannot read {args.file}: {exc}", file=sys.stderr)
-        return 2
+        return EXIT_USAGE
     size = args.file.stat().st_size
     span = (max(times) - min(times)) / 1e9 if times else 0.0
+    code = EXIT_OK if reader.complete else EXIT_DAMAGED if reader.damage else EXIT_CUT
+    if reader.layout == "indexed":
+        crcs = (f"{reader.n_chunks_crc}/{reader.n_chunks} chunk CRCs"
+                f"{', data section CRC' if reader.data_crc else ''}"
+                f"{', summary CRC' if reader.summary_crc else ''} verified"
+                f"{'' if reader.complete else ' before it stopped'}")
+    elif reader.layout == "flat":
+        crcs = "flat layout without CRCs (format 1): integrity not verifiable"
+    else:
+        crcs = "no records"
+    n_in = sum(sum(m["ops"].values()) for m in maps.values())
+    per_op = size / n_in if n_in else 0.0
     if args.json:
         print(json.dumps({
-            "file": str(args.file), "bytes": size, "complete": reader.complete,
-            "tail_error": reader.tail_error, "library": reader.library, "span_s": span,
+            "file": str(args.file), "bytes": size, "bytes_per_input": per_op,
+            "complete": reader.complete, "cut": reader.cut, "damage": reader.damage,
+            "tail_error": reader.tail_error, "exit_code": code, "library": reader.library,
+            "layout": reader.layout, "chunks": reader.n_chunks,
+            "chunk_crcs": reader.n_chunks_crc, "data_crc": reader.data_crc,
+            "summary_crc": reader.summary_crc, "arithmetic_version": reader.arithmetic_version,
+            "arithmetic_version_here": ARITHMETIC_VERSION, "span_s": span,
             "maps": {n: {"options": m["options"], "ops": dict(m["ops"]),
+                         "arithmetic_version": m["arithmetic_version"],
                          "frames_named": len(m["frames"]), "last_seq": m["last_seq"],
                          "checkpoints": m["checkpoints"]} for n, m in maps.items()}}))
-        return 0
-    print(f"file:      {args.file} ({size} bytes, written by {reader.library or '?'})")
-    print(f"state:     {'complete' if reader.complete else 'TRUNCATED: ' + str(reader.tail_error)}")
+        return code
+    print(f"file:      {args.file} ({size} bytes, {per_op / 1e3:.1f} kB per input, written by "
+          f"{reader.library or '?'})")
+    state = _state_line(reader.complete, reader.cut, reader.damage, reader.tail_error)
+    print(f"state:     {state}")
+    print(f"integrity: {crcs}")
+    print(f"arithmetic version {reader.arithmetic_version} (this mcsm: {ARITHMETIC_VERSION})")
     if times:
         t0 = time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(min(times) / 1e9))
         print(f"time span: {span:.3f} s from {t0} UTC")
     for name, m in maps.items():
         print(f"map {name!r}: options {m['options']}")
+        if m["arithmetic_version"] not in (None, reader.arithmetic_version):
+            print(f"  arithmetic version {m['arithmetic_version']}")
         if m.get("restored_from"):
             print(f"  restored from {m['restored_from']}")
         ops = ", ".join(f"{k} {v}" for k, v in sorted(m["ops"].items())) or "none"
@@ -349,9 +514,131 @@ def inspect_cmd(args: argparse.Namespace) -> int:
         print(f"  senders: {len(m['senders'])}")
         cps = m["checkpoints"]
         print(f"  checkpoints: {len(cps)}")
-        for seq, dig, why in cps[:3] + (cps[-2:] if len(cps) > 5 else cps[3:]):
-            print(f"    seq {seq:>7} {why:<8} {dig}")
-    return 0
+        for seq, dig, why_cp in cps[:3] + (cps[-2:] if len(cps) > 5 else cps[3:]):
+            print(f"    seq {seq:>7} {why_cp:<8} {dig}")
+    return code
+
+
+# ------------------------------------------------------------------------------------ recover
+def recover_cmd(args: argparse.Namespace) -> int:
+    from mcsm.recording import TOPIC_CHECKPOINT, TOPIC_CONFIG, RecordingError, recover
+
+    why = _input_file("recover", args.file) or _output_file("recover", args.output)
+    if why:
+        print(why, file=sys.stderr)
+        return EXIT_USAGE
+    if args.output.resolve() == args.file.resolve():
+        print("mcsm recover: the output must be a new file", file=sys.stderr)
+        return EXIT_USAGE
+    bar = _progress(args, f"recover {args.file.name}")
+    try:
+        rep = recover(args.file, args.output, progress=bar)
+    except (RecordingError, OSError) as exc:
+        args.output.unlink(missing_ok=True)
+        print(f"mcsm recover: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    finally:
+        if bar is not None:
+            bar.close()
+    state = _state_line(rep.source_complete, rep.source_cut, rep.damage, rep.tail_error)
+    print(f"{args.file}: {state}")
+    if rep.chunks_after_damage:
+        print(f"  {rep.chunks_after_damage} intact chunks after the damage were copied too; the "
+              "records lost in the damaged part leave a gap, where a replay of the copy stops")
+    print(f"{args.output}: {rep.n_inputs} inputs, {rep.messages[TOPIC_CHECKPOINT]} checkpoints, "
+          f"{rep.messages[TOPIC_CONFIG]} map configs ({rep.bytes_written} bytes, indexed)")
+    return EXIT_OK
+
+
+# ------------------------------------------------------------------------------------ cat
+def _summarise(obj: Any, with_samples: bool) -> Any:
+    """An AT as its mean and covariance (or every sample), points as mean and covariance."""
+    import numpy as np
+
+    from mcsm.core import mean_and_cov
+
+    x = np.asarray(obj, dtype=np.float64)
+    out: dict[str, Any] = {"n": int(x.shape[0])}
+    if with_samples:
+        out["samples"] = x.tolist()
+        return out
+    if x.shape[-1] == 7:
+        mean, cov = mean_and_cov(x)
+    else:
+        mean, cov = x.mean(axis=0), np.cov(x, rowvar=False)
+    out["mean"] = [float(v) for v in mean]
+    out["cov"] = np.asarray(cov).tolist()
+    return out
+
+
+def _input_json(op: str, req: Any, with_samples: bool) -> dict[str, Any]:
+    if op == "update":
+        return {"a": req.a, "b": req.b, "samples": _summarise(req.samples, with_samples)}
+    if op == "remove":
+        return {"frame": req.frame}
+    sub = req.submap
+    return {"root": sub.root, "frames": list(sub.frames), "is_point": list(sub.is_point),
+            "edges": [_summarise(e, with_samples) for e in sub.edges[1:]]}
+
+
+def cat_cmd(args: argparse.Namespace) -> int:
+    from mcsm.recording import TOPIC_CONFIG, TOPIC_OPS, RecordingError, RecordingReader
+    from mcsm.recording import decode_input as decode
+
+    why = _input_file("cat", args.file)
+    if why:
+        print(why, file=sys.stderr)
+        return EXIT_USAGE
+    reader = RecordingReader(args.file)
+    n_samples: dict[str, int] = {}
+    try:
+        for item in reader:
+            d = item.data
+            name = str(d.get("map"))
+            if item.topic == TOPIC_CONFIG:
+                n_samples.setdefault(name, int(d.get("options", {}).get("n_samples", 0)))
+                continue
+            op = TOPIC_OPS.get(item.topic)
+            if op is None:
+                continue
+            line: dict[str, Any] = {"map": name, "seq": d.get("seq"), "op": op,
+                                    "recv_ns": d.get("recv_ns"), "sender": d.get("sender"),
+                                    "id": d.get("id")}
+            try:
+                req = decode(op, bytes(d["request"]), n_samples.get(name, 0))
+                line.update(_input_json(op, req, args.samples))
+            except (McsmError, KeyError, TypeError, ValueError) as exc:
+                line["error"] = f"{type(exc).__name__}: {exc}"
+            if args.json:
+                print(json.dumps(line))
+            else:
+                print(_cat_text(line))
+    except BrokenPipeError:
+        raise
+    except (RecordingError, OSError) as exc:
+        print(f"mcsm cat: cannot read {args.file}: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    if not reader.complete:
+        print(f"mcsm cat: {args.file}: "
+              f"{_state_line(False, reader.cut, reader.damage, reader.tail_error)}",
+              file=sys.stderr)
+        return EXIT_DAMAGED if reader.damage else EXIT_CUT
+    return EXIT_OK
+
+
+def _cat_text(line: dict[str, Any]) -> str:
+    head = f"{line['map']} seq {line['seq']} {line['op']}"
+    if "error" in line:
+        return f"{head} undecodable: {line['error']}"
+    if line["op"] == "update":
+        s = line["samples"]
+        mean = " ".join(f"{v:.4g}" for v in s.get("mean", []))
+        body = f"{line['a']} -> {line['b']} N={s['n']}" + (f" mean [{mean}]" if mean else "")
+    elif line["op"] == "remove":
+        body = line["frame"]
+    else:
+        body = f"{len(line['frames'])} frames"
+    return f"{head} {body} (sender {line['sender']}, id {line['id']})"
 
 
 if __name__ == "__main__":

@@ -1,14 +1,17 @@
 """MCAP recording of every accepted input, and deterministic replay.
 
-A recording is an MCAP file, unchunked (each record reaches the file at ``Writer.flush()``,
-which the server calls before it acknowledges), with message encoding ``msgpack`` and one
-channel per kind of record, each with a ``jsonschema`` schema record embedding the schema from
-``schemas/``:
+A recording is a chunked, indexed MCAP file (lz4 chunk compression) with CRCs (chunk and data
+section) and a summary when it was closed cleanly. The server calls :meth:`Recorder.input`
+before it acknowledges; that call ends the open chunk (``Writer.flush()``), so every
+acknowledged input is in the file as a complete chunk with its message index: a SIGKILL loses
+nothing acknowledged, and ``mcsm recover`` turns the cut file into a clean indexed one.
+Message encoding ``msgpack``; one channel per kind of record, each with a ``jsonschema``
+schema record (each schema once) embedding the schema from ``schemas/``:
 
 ==========================  ===================================================================
 topic                       message
 ==========================  ===================================================================
-``/mcsm/config``            ``record_config``: a map's name and options (first, one per map)
+``/mcsm/config``            ``record_config``: a map's name, options and arithmetic version
 ``/mcsm/in/update``         ``record_input``: update or point update, exact request bytes
 ``/mcsm/in/remove``         ``record_input``: remove
 ``/mcsm/in/submap_import``  ``record_input``: submap import
@@ -16,35 +19,58 @@ topic                       message
 ==========================  ===================================================================
 
 Each input carries the map's sequence number (also the MCAP ``sequence``), the receive time
-(the MCAP ``log_time``), the sender and the request id. Queries and exports change nothing
-and are not recorded; rejected inputs are not recorded.
+(the MCAP ``publish_time``; ``log_time`` is when the record was written, never earlier), the
+sender and the request id. Queries and exports change nothing and are not recorded; rejected
+inputs are not recorded. A metadata record ``mcsm`` names the software and the core's
+arithmetic version (:data:`mcsm.core.ARITHMETIC_VERSION`); recordings without it were made by
+arithmetic version 1.
 
-Replay (:func:`replay`) reads the file with mcap's ``StreamReader`` only, because after a
-SIGKILL the file has no summary or footer and the seeking reader returns nothing
-(``shared/notes/ecosystem.md`` §3.3); it decodes each request with :mod:`mcsm.wire`, applies it
-through :class:`MapState` (the same code the live server runs) and checks every checkpoint.
+Replay (:func:`replay`) reads the file with mcap's ``StreamReader`` only (checking CRCs),
+because after a SIGKILL the file has no summary or footer; it decodes each request with
+:mod:`mcsm.wire`, applies it through :class:`MapState` (the same code the live server runs) and
+checks every checkpoint.
 """
 
 from __future__ import annotations
 
 import logging
+import mmap
 import os
 import struct
 import sys
 import time
+import zlib
 from collections import Counter, OrderedDict
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from importlib import resources
+from io import BytesIO
 from pathlib import Path
 from typing import Any, BinaryIO
 
-from mcap.exceptions import McapError
-from mcap.records import Channel, DataEnd, Footer, Message, Schema
-from mcap.stream_reader import StreamReader
-from mcap.writer import Writer
+import lz4.frame as lz4_frame
+from mcap.data_stream import RecordBuilder
+from mcap.exceptions import EndOfFile, McapError
+from mcap.opcode import Opcode
+from mcap.records import (
+    Channel,
+    Chunk,
+    ChunkIndex,
+    DataEnd,
+    Footer,
+    Header,
+    Message,
+    Metadata,
+    MetadataIndex,
+    Schema,
+    Statistics,
+    SummaryOffset,
+)
+from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.writer import CompressionType, Writer
 
 from mcsm import __version__, wire
+from mcsm.core import ARITHMETIC_VERSION
 from mcsm.core.smap import StochasticMap
 from mcsm.errors import InvalidOperation, McsmError, RequestIdReused
 from mcsm.history import DEFAULT_SNAPSHOT_EVERY, DEFAULT_SNAPSHOTS_KEPT, History
@@ -65,6 +91,37 @@ DEFAULT_LRU = 100_000
 """Request ids (with their acks) each map remembers at most (about 60 MB at most)."""
 DEFAULT_ID_TTL_S = 600.0
 """Seconds a request id is remembered (ten minutes: a server restart takes 1-8 s)."""
+#: version of the file layout, in the ``mcsm`` metadata record ("mcsm recording v2")
+FORMAT_VERSION = 2
+#: "indexed-lz4" (chunked, indexes, CRCs, lz4 chunk compression; the default), "indexed" (the
+#: same uncompressed), "indexed-zstd", or "flat" (the unchunked layout of format 1, kept
+#: selectable only so that benchmarks can compare them in one run); docs/recordings.md has the
+#: measurements behind the default: lz4 halves planar maps' files and costs ~0.03-0.1 ms/input
+LAYOUTS = ("indexed-lz4", "indexed", "indexed-zstd", "flat")
+DEFAULT_LAYOUT = "indexed-lz4"
+LAYOUT_ENV = "MCSM_RECORDING_LAYOUT"
+#: arithmetic version of a recording that does not say (made before the field existed)
+LEGACY_ARITHMETIC_VERSION = 1
+_MAGIC = b"\x89MCAP0\r\n"
+_OP_LEN = struct.Struct("<BQ")
+_U32 = struct.Struct("<I")
+_U64 = struct.Struct("<Q")
+_RECORD_22 = struct.Struct("<BQHIQQ")  # a message's head, or a one-entry message index
+_CHUNK_FIELDS = struct.Struct("<QQQII")  # start, end, uncompressed size and CRC, len(compr.)
+#: lz4 "fast acceleration" 2: about half the CPU time of level 0 for nearly the same ratio on
+#: planar samples (benchmarks/recording_size.py); any lz4 frame decoder reads it
+_LZ4_LEVEL = -2
+# zlib-ng's CRC-32 is the same function as zlib's, about 4x faster here, and can combine CRCs
+_crc32: Callable[..., int] = zlib.crc32
+_crc32_combine: Callable[[int, int, int], int] | None = None
+try:
+    from zlib_ng import zlib_ng as _zng
+
+    _crc32, _crc32_combine = _zng.crc32, _zng.crc32_combine
+except ImportError:  # pragma: no cover - zlib-ng is a dependency; the same CRCs, only slower
+    pass
+_STREAM_ERRORS = (McapError, EOFError, ValueError, struct.error, KeyError, IndexError,
+                  UnicodeDecodeError)
 
 
 class RecordingError(McsmError):
@@ -244,6 +301,182 @@ def decode_input(op: str, payload: bytes, n_samples: int) -> Any:
 # Writing
 # --------------------------------------------------------------------------------------------
 
+def _new_writer(fh: BinaryIO, layout: str, library: str) -> Any:
+    """A started writer for ``layout`` (see :data:`LAYOUTS`)."""
+    if layout in ("indexed", "indexed-lz4"):
+        return ChunkPerInputWriter(fh, lz4=layout == "indexed-lz4", library=library)
+    if layout == "flat":
+        w = Writer(fh, use_chunking=False, enable_crcs=True)
+    else:
+        w = Writer(fh, use_chunking=True, compression=CompressionType.ZSTD, enable_crcs=True,
+                   enable_data_crcs=True)
+    w.start(profile="", library=library)
+    return w
+
+
+class ChunkPerInputWriter:
+    """The recorder's MCAP writer: each message in its own chunk, on disk when the call returns.
+
+    The same file as ``mcap.writer.Writer(use_chunking=True, enable_crcs=True,
+    enable_data_crcs=True)`` with ``flush()`` after every message (mcap's readers, seeking and
+    streaming, read it; tests check that), built for the acknowledgement path: one pass of
+    CRC-32 over a message (zlib-ng's, about 4x zlib's; the data-section CRC is combined, not
+    recomputed), one ``writev`` system call per message with no copy of the sample bytes, and
+    lz4 only where it pays. Schema, channel and metadata records are written outside chunks,
+    before the messages that use them; :meth:`finish` writes the summary (schemas, channels,
+    statistics, chunk and metadata indexes, summary offsets) and the footer.
+
+    With ``lz4``, a chunk is stored lz4-compressed when that saves at least 10 %; a channel
+    whose messages do not compress (3-D samples are noise in their low bytes) is stored as it
+    is and tried again every :attr:`LZ4_RETRY` messages, so it costs next to nothing.
+    """
+
+    LZ4_RETRY = 64
+
+    def __init__(self, fh: BinaryIO, *, lz4: bool, library: str) -> None:
+        self._fd = fh.fileno()
+        self._lz4 = lz4
+        self._pos = 0
+        self._crc = 0  # data section CRC so far
+        self._schemas: dict[int, Schema] = {}
+        self._channels: dict[int, Channel] = {}
+        self._chunk_indexes: list[ChunkIndex] = []
+        self._metadata_indexes: list[MetadataIndex] = []
+        self._counts: Counter[int] = Counter()
+        self._skip_lz4: dict[int, int] = {}
+        self._t0: int | None = None
+        self._t1 = 0
+        self._write([_MAGIC])
+        self._record(Header(profile="", library=library))
+
+    def _write(self, parts: list[bytes], crcs: list[int | None] | None = None) -> None:
+        """Append ``parts`` with one system call; ``crcs`` may give parts' own CRC-32."""
+        total = 0
+        for k, part in enumerate(parts):
+            known = crcs[k] if crcs is not None else None
+            if known is not None and _crc32_combine is not None:
+                self._crc = _crc32_combine(self._crc, known, len(part))
+            else:
+                self._crc = _crc32(part, self._crc)
+            total += len(part)
+        _write_all(self._fd, parts, total)
+        self._pos += total
+
+    def _record(self, rec: Any) -> int:
+        rb = RecordBuilder()
+        rec.write(rb)
+        data = rb.end()
+        self._write([data])
+        return len(data)
+
+    def register_schema(self, name: str, encoding: str, data: bytes) -> int:
+        sid = len(self._schemas) + 1
+        self._schemas[sid] = Schema(id=sid, name=name, encoding=encoding, data=data)
+        self._record(self._schemas[sid])
+        return sid
+
+    def register_channel(self, topic: str, message_encoding: str, schema_id: int,
+                         metadata: dict[str, str] | None = None) -> int:
+        cid = len(self._channels) + 1
+        self._channels[cid] = Channel(id=cid, topic=topic, message_encoding=message_encoding,
+                                      schema_id=schema_id, metadata=dict(metadata or {}))
+        self._record(self._channels[cid])
+        return cid
+
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        offset = self._pos
+        length = self._record(Metadata(name=name, metadata=dict(data)))
+        self._metadata_indexes.append(MetadataIndex(offset=offset, length=length, name=name))
+
+    def add_message(self, channel_id: int, log_time: int, data: bytes, publish_time: int,
+                    sequence: int = 0) -> None:
+        """Write ``data`` as the only message of a new chunk, followed by its message index."""
+        head = _RECORD_22.pack(0x05, 22 + len(data), channel_id, sequence, log_time,
+                               publish_time)
+        size = len(head) + len(data)
+        head_crc, data_crc = _crc32(head), _crc32(data)
+        records_crc = (_crc32_combine(head_crc, data_crc, len(data))
+                       if _crc32_combine is not None else _crc32(data, head_crc))
+        packed = b""
+        if self._lz4:
+            skip = self._skip_lz4.get(channel_id, 0)
+            if skip:
+                self._skip_lz4[channel_id] = skip - 1
+            else:
+                packed = lz4_frame.compress(head + data, compression_level=_LZ4_LEVEL)
+                if len(packed) > 0.9 * size:
+                    packed = b""
+                    self._skip_lz4[channel_id] = self.LZ4_RETRY
+        compression = b"lz4" if packed else b""
+        stored = len(packed) if packed else size
+        chunk_len = _CHUNK_FIELDS.size + len(compression) + 8 + stored
+        chunk_head = b"".join((_OP_LEN.pack(0x06, chunk_len),
+                               _CHUNK_FIELDS.pack(log_time, log_time, size, records_crc,
+                                                  len(compression)),
+                               compression, _U64.pack(stored)))
+        index = _RECORD_22.pack(0x07, 22, channel_id, 16, log_time, 0)
+        start = self._pos
+        if packed:
+            self._write([chunk_head, packed, index])
+        else:
+            self._write([chunk_head, head, data, index], [None, head_crc, data_crc, None])
+        self._chunk_indexes.append(ChunkIndex(
+            message_start_time=log_time, message_end_time=log_time, chunk_start_offset=start,
+            chunk_length=9 + chunk_len,
+            message_index_offsets={channel_id: start + 9 + chunk_len},
+            message_index_length=len(index), compression=compression.decode(),
+            compressed_size=stored, uncompressed_size=size))
+        self._counts[channel_id] += 1
+        self._t0 = log_time if self._t0 is None else min(self._t0, log_time)
+        self._t1 = max(self._t1, log_time)
+
+    def flush(self) -> None:
+        """Nothing to do: every record reached the OS when the call that wrote it returned."""
+
+    def finish(self) -> None:
+        """Write the data end record, the summary and the footer."""
+        self._record(DataEnd(data_section_crc=self._crc))
+        summary_start = self._pos
+        rb = RecordBuilder()
+        offsets: list[SummaryOffset] = []
+
+        def group(opcode: int, records: list[Any]) -> None:
+            if not records:  # no offset for an empty group (readers flag one as an error)
+                return
+            begin = rb.count
+            for r in records:
+                r.write(rb)
+            offsets.append(SummaryOffset(group_opcode=opcode, group_start=summary_start + begin,
+                                         group_length=rb.count - begin))
+
+        group(Opcode.SCHEMA, list(self._schemas.values()))
+        group(Opcode.CHANNEL, list(self._channels.values()))
+        group(Opcode.STATISTICS, [Statistics(
+            attachment_count=0, channel_count=len(self._channels),
+            channel_message_counts=dict(self._counts), chunk_count=len(self._chunk_indexes),
+            message_count=sum(self._counts.values()), message_start_time=self._t0 or 0,
+            message_end_time=self._t1, metadata_count=len(self._metadata_indexes),
+            schema_count=len(self._schemas))])
+        group(Opcode.CHUNK_INDEX, list(self._chunk_indexes))
+        group(Opcode.METADATA_INDEX, list(self._metadata_indexes))
+        summary_offset_start = summary_start + rb.count
+        for o in offsets:
+            o.write(rb)
+        summary = rb.end()
+        footer = struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, summary_offset_start)
+        footer += _U32.pack(_crc32(footer, _crc32(summary)))
+        parts = [summary, footer, _MAGIC]
+        _write_all(self._fd, parts, sum(map(len, parts)))
+
+
+def _write_all(fd: int, parts: list[bytes], total: int) -> None:
+    done = os.writev(fd, parts)
+    if done < total:  # a short write (rare): finish it the slow way
+        rest = memoryview(b"".join(parts))[done:]
+        while rest:
+            rest = rest[os.write(fd, rest):]
+
+
 class Recorder:
     """Append-only MCAP writer; every record is flushed to the OS before the call returns.
 
@@ -251,31 +484,51 @@ class Recorder:
     ----------
     path : the new file (refused if it exists)
     fsync : also ``os.fsync`` after each input (survives power loss; ~4 ms per message here)
+    layout : one of :data:`LAYOUTS` (default ``"indexed-lz4"``; ``"flat"`` is format 1, for
+        benchmark comparisons only); the environment variable ``MCSM_RECORDING_LAYOUT`` sets
+        the default
+
+    Raises
+    ------
+    RecordingError
+        If the file exists or the layout is unknown.
     """
 
-    def __init__(self, path: str | os.PathLike[str], *, fsync: bool = False) -> None:
+    def __init__(self, path: str | os.PathLike[str], *, fsync: bool = False,
+                 layout: str | None = None) -> None:
         self.path = Path(path)
+        self.layout = layout or os.environ.get(LAYOUT_ENV) or DEFAULT_LAYOUT
+        if self.layout not in LAYOUTS:
+            raise RecordingError(str(self.path), f"unknown recording layout {self.layout!r} "
+                                 f"(expected one of {', '.join(LAYOUTS)})")
         if self.path.exists():
             raise RecordingError(str(self.path), "exists; refusing to overwrite a recording")
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._fh: BinaryIO = open(self.path, "xb")  # noqa: SIM115 - closed in close()
         self._fsync = fsync
-        self._w = Writer(self._fh, use_chunking=False, enable_crcs=True)
-        self._w.start(profile="", library=f"mcsm {__version__}")
+        self._w = _new_writer(self._fh, self.layout, f"mcsm {__version__}")
         self._channels: dict[str, int] = {}
+        schema_ids: dict[str, int] = {}
         for topic, (name, filename) in _SCHEMAS.items():
-            sid = self._w.register_schema(name, "jsonschema", schema_bytes(filename))
-            self._channels[topic] = self._w.register_channel(topic, "msgpack", sid)
+            if name not in schema_ids or self.layout == "flat":
+                schema_ids[name] = self._w.register_schema(name, "jsonschema",
+                                                           schema_bytes(filename))
+            self._channels[topic] = self._w.register_channel(topic, "msgpack", schema_ids[name])
+        fmt = 1 if self.layout == "flat" else FORMAT_VERSION
         self._w.add_metadata("mcsm", {"software": f"mcsm {__version__}",
-                                      "format": "mcsm recording v1"})
+                                      "format": f"mcsm recording v{fmt}",
+                                      "arithmetic_version": str(ARITHMETIC_VERSION)})
         self._w.flush()
         self.n_inputs = 0
         self.closed = False
 
-    def _add(self, topic: str, obj: dict[str, Any], log_time_ns: int, seq: int) -> None:
+    def _add(self, topic: str, obj: dict[str, Any], publish_ns: int, seq: int) -> None:
         data = wire.pack({"v": wire.VERSION, **obj})
-        self._w.add_message(self._channels[topic], log_time=int(log_time_ns), data=data,
-                            publish_time=time.time_ns(), sequence=int(seq) & 0xFFFFFFFF)
+        # log_time: when the record is written; publish_time: when it came about (receive
+        # time of an input), so publish_time <= log_time as MCAP readers expect
+        log_ns = max(time.time_ns(), int(publish_ns))
+        self._w.add_message(self._channels[topic], log_time=log_ns, data=data,
+                            publish_time=int(publish_ns), sequence=int(seq) & 0xFFFFFFFF)
 
     def _flush(self, sync: bool) -> None:
         self._w.flush()
@@ -291,7 +544,8 @@ class Recorder:
                                  "snapshot_every": state.history.snapshot_every,
                                  "snapshots_kept": state.history.snapshots_kept,
                                  "server_id": server_id, "restored_from": restored_from,
-                                 "software": f"mcsm {__version__}"}, now, 0)
+                                 "software": f"mcsm {__version__}",
+                                 "arithmetic_version": ARITHMETIC_VERSION}, now, 0)
         self._flush(self._fsync)
 
     def input(self, op: str, map_name: str, seq: int, recv_ns: int, sender: str,
@@ -332,16 +586,49 @@ class RecordItem:
     log_time_ns: int
 
 
-class RecordingReader:
-    """Stream the records of a recording, complete or cut short (SIGKILL, full disk).
+def _ends_with_footer(path: Path, size: int) -> bool:
+    if size < 2 * len(_MAGIC) + 29:
+        return False
+    with open(path, "rb") as fh:
+        fh.seek(size - len(_MAGIC))
+        return fh.read(len(_MAGIC)) == _MAGIC
 
-    Iterating yields :class:`RecordItem` in file order. Afterwards ``complete`` tells whether
-    the file ended cleanly (a footer was read) and ``tail_error`` why reading stopped early.
+
+def _summary_crc_ok(path: Path, size: int, footer: Footer) -> bool:
+    """Check the footer's summary CRC (MCAP spec: summary start .. summary_offset_start)."""
+    footer_start = size - len(_MAGIC) - 29
+    start = footer.summary_start or footer_start
+    if not 0 < start <= footer_start:
+        return False
+    crc = 0
+    with open(path, "rb") as fh:
+        fh.seek(start)
+        remaining = size - len(_MAGIC) - 4 - start
+        while remaining > 0:
+            block = fh.read(min(remaining, 1 << 20))
+            if not block:
+                return False
+            crc = zlib.crc32(block, crc)
+            remaining -= len(block)
+    return crc == footer.summary_crc
+
+
+class RecordingReader:
+    """Stream the records of a recording, complete, cut short (SIGKILL, full disk) or damaged.
+
+    Iterating yields :class:`RecordItem` in file order and checks every CRC the file has (each
+    chunk, the data section, the summary). Afterwards: ``complete`` (a footer was read and
+    every CRC matched), ``cut`` (the file ends before its footer), ``damage`` (why a damaged
+    file could not be read further: a CRC mismatch, an undecodable record), ``tail_error``
+    (why reading stopped early, either way) and ``stop_offset`` (the byte where it stopped).
+    Reading stops at the first cut or damage; every record before it is yielded.
 
     Raises
     ------
     RecordingError
-        If the file is not an MCAP file, or a record does not decode as an mcsm record.
+        If the file is not an MCAP file (no magic and header).
+    OSError
+        If the file cannot be opened.
     """
 
     def __init__(self, path: str | os.PathLike[str],
@@ -351,50 +638,112 @@ class RecordingReader:
         self.progress = progress
         self.complete = False
         self.tail_error: str | None = None
+        self.damage: str | None = None
+        self.stop_offset = 0
         self.library = ""
+        self.metadata: dict[str, dict[str, str]] = {}
         self.n_messages = 0
+        self.n_chunks = 0
+        self.n_chunks_crc = 0
+        self.data_crc = False  # the data section CRC was present and matched
+        self.summary_crc = False  # the summary CRC was present and matched
+        self.channels: dict[int, Channel] = {}
+        self.schemas: dict[int, Schema] = {}
 
-    def __iter__(self) -> Iterator[RecordItem]:
-        channels: dict[int, str] = {}
+    @property
+    def cut(self) -> bool:
+        """The file ends before its footer (and shows no other damage)."""
+        return not self.complete and self.damage is None and self.tail_error is not None
+
+    @property
+    def layout(self) -> str:
+        """"indexed" (chunks; format 2), "flat" (no chunks; format 1) or "empty" (no records)."""
+        fmt = self.metadata.get("mcsm", {}).get("format", "")
+        if self.n_chunks or fmt.endswith(f"v{FORMAT_VERSION}"):
+            return "indexed"
+        return "flat" if self.n_messages else "empty"
+
+    @property
+    def arithmetic_version(self) -> int:
+        """The ``mcsm`` metadata's arithmetic version (1 for files that do not say)."""
+        try:
+            return int(self.metadata.get("mcsm", {}).get("arithmetic_version",
+                                                          LEGACY_ARITHMETIC_VERSION))
+        except ValueError:
+            return LEGACY_ARITHMETIC_VERSION
+
+    def _stopped(self, exc: BaseException, at: int, what: str = "") -> None:
+        self.stop_offset = at
+        eof = isinstance(exc, (EndOfFile, EOFError, struct.error))
+        if eof:
+            self.tail_error = (f"the file ends inside the record at byte {at} of {self.size}"
+                               if at < self.size else f"the file ends at byte {self.size}")
+        else:
+            self.tail_error = f"{what or type(exc).__name__} at byte {at} of {self.size}: {exc}"
+        if not eof or _ends_with_footer(self.path, self.size):
+            self.damage = self.tail_error
+
+    def raw(self) -> Iterator[Schema | Channel | Message | Metadata]:
+        """The file's schema, channel, metadata and message records, CRCs checked."""
         with open(self.path, "rb") as fh:
-            reader = StreamReader(fh, record_size_limit=MAX_RECORD_BYTES)
+            reader = StreamReader(fh, emit_chunks=True, validate_crcs=True,
+                                  record_size_limit=MAX_RECORD_BYTES)
             records = iter(reader.records)
             last_report = 0.0
             try:
                 header = next(records)
-            except (McapError, EOFError, ValueError, struct.error, StopIteration) as exc:
+            except (*_STREAM_ERRORS, StopIteration) as exc:
                 raise RecordingError(str(self.path), f"not an MCAP file ({type(exc).__name__})"
                                      ) from None
             self.library = str(getattr(header, "library", ""))
             while True:
+                pos = fh.tell()
                 try:
                     rec = next(records)
                 except StopIteration:
                     break
-                except (McapError, EOFError, ValueError, struct.error) as exc:
-                    self.tail_error = (f"{type(exc).__name__} at byte {fh.tell()} of "
-                                       f"{self.size}: {exc}")
+                except _STREAM_ERRORS as exc:
+                    self._stopped(exc, pos)
                     break
-                if isinstance(rec, Schema):
-                    continue
-                if isinstance(rec, Channel):
-                    channels[rec.id] = rec.topic
-                elif isinstance(rec, Message):
-                    topic = channels.get(rec.channel_id)
-                    if topic is None:
-                        raise RecordingError(str(self.path),
-                                             f"message on undeclared channel {rec.channel_id}")
+                inner: list[Any] = [rec]
+                if isinstance(rec, Chunk):
+                    self.n_chunks += 1
+                    self.n_chunks_crc += rec.uncompressed_crc != 0
                     try:
-                        data = wire.unpack(rec.data, max_bytes=MAX_RECORD_BYTES)
-                    except McsmError as exc:
-                        raise RecordingError(str(self.path),
-                                             f"undecodable record on {topic}: {exc}") from None
-                    self.n_messages += 1
-                    yield RecordItem(topic, data, int(rec.log_time))
-                elif isinstance(rec, (DataEnd, Footer)):
-                    if isinstance(rec, Footer):
-                        self.complete = True
+                        inner = list(breakup_chunk(rec, validate_crc=True))
+                    except _STREAM_ERRORS as exc:
+                        self._stopped(exc, pos, "bad chunk")
+                        self.damage = self.tail_error
                         break
+                for r in inner:
+                    if isinstance(r, Schema):
+                        self.schemas[r.id] = r
+                        yield r
+                    elif isinstance(r, Channel):
+                        self.channels[r.id] = r
+                        yield r
+                    elif isinstance(r, Metadata):
+                        self.metadata[r.name] = dict(r.metadata)
+                        yield r
+                    elif isinstance(r, Message):
+                        if r.channel_id not in self.channels:
+                            self.stop_offset = pos
+                            self.tail_error = self.damage = (
+                                f"message on undeclared channel {r.channel_id} at byte {pos}")
+                            return
+                        self.n_messages += 1
+                        yield r
+                    elif isinstance(r, DataEnd):
+                        self.data_crc = r.data_section_crc != 0
+                    elif isinstance(r, Footer):
+                        self.stop_offset = self.size
+                        if r.summary_crc != 0:
+                            if not _summary_crc_ok(self.path, self.size, r):
+                                self.tail_error = self.damage = "summary CRC mismatch"
+                                return
+                            self.summary_crc = True
+                        self.complete = True
+                        return
                 if self.progress is not None:
                     now = time.monotonic()
                     if now - last_report > 0.1:
@@ -402,6 +751,56 @@ class RecordingReader:
                         self.progress(fh.tell(), self.size)
             if self.progress is not None:
                 self.progress(self.size if self.complete else fh.tell(), self.size)
+
+    def __iter__(self) -> Iterator[RecordItem]:
+        for rec in self.raw():
+            if not isinstance(rec, Message):
+                continue
+            topic = self.channels[rec.channel_id].topic
+            try:
+                data = wire.unpack(rec.data, max_bytes=MAX_RECORD_BYTES)
+            except McsmError as exc:
+                self.tail_error = self.damage = f"undecodable record on {topic}: {exc}"
+                return
+            yield RecordItem(topic, data, int(rec.log_time))
+
+
+def scan_chunks(path: str | os.PathLike[str], start: int) -> Iterator[tuple[int, list[Any]]]:
+    """Find the intact chunks after byte ``start`` of a damaged file (their CRCs match).
+
+    Yields (offset, records of the chunk). Used by :func:`recover` to save what follows a
+    damaged chunk; a flat (unchunked) file has nothing to find this way.
+    """
+    p = Path(path)
+    size = p.stat().st_size
+    if size <= start:
+        return
+    with open(p, "rb") as fh, mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as mm:
+        i = start
+        while i < size:
+            j = mm.find(b"\x06", i)
+            if j < 0 or j + 9 > size:
+                return
+            (length,) = struct.unpack_from("<Q", mm, j + 1)
+            if not 36 <= length <= min(MAX_RECORD_BYTES, size - j - 9):
+                i = j + 1
+                continue
+            try:
+                chunk = Chunk.read(_ReadStream(mm[j + 9: j + 9 + length]))
+                if chunk.uncompressed_crc == 0 or chunk.compression not in ("", "zstd", "lz4"):
+                    raise ValueError("not a chunk with a CRC")
+                records = list(breakup_chunk(chunk, validate_crc=True))
+            except _STREAM_ERRORS:
+                i = j + 1
+                continue
+            yield j, records
+            i = j + 9 + length
+
+
+def _ReadStream(data: bytes) -> Any:  # noqa: N802 - a constructor-like helper
+    from mcap.data_stream import ReadDataStream
+
+    return ReadDataStream(BytesIO(data))
 
 
 # --------------------------------------------------------------------------------------------
@@ -427,17 +826,29 @@ class ReplayReport:
     ops: Counter[str] = field(default_factory=Counter)
     checkpoints: list[Checkpoint] = field(default_factory=list)
     checkpoints_ok: int = 0
+    #: checkpoints of maps recorded by another arithmetic version: not comparable, not checked
+    checkpoints_other_arithmetic: int = 0
     divergence: str | None = None
     complete: bool = False
+    cut: bool = False
+    damage: str | None = None
     tail_error: str | None = None
     first_time_ns: int | None = None
     last_time_ns: int | None = None
     elapsed_s: float = 0.0
     library: str = ""
+    #: arithmetic version each map was recorded with (1 when the recording does not say)
+    arithmetic_versions: dict[str, int] = field(default_factory=dict)
 
     @property
     def identical(self) -> bool:
+        """No divergence among what was compared (see also ``complete``, ``other_arithmetic``)."""
         return self.divergence is None
+
+    @property
+    def other_arithmetic(self) -> dict[str, int]:
+        """Maps recorded by an arithmetic version other than this core's, with that version."""
+        return {n: v for n, v in self.arithmetic_versions.items() if v != ARITHMETIC_VERSION}
 
     def final_digests(self) -> dict[str, str]:
         return {name: st.map.state_digest() for name, st in self.states.items()}
@@ -449,9 +860,14 @@ def replay(path: str | os.PathLike[str], *, sink: Recorder | None = None,
            stop_after: int | None = None) -> ReplayReport:
     """Rebuild every map of a recording and check its digests at every checkpoint.
 
+    A map recorded by another arithmetic version (:data:`mcsm.core.ARITHMETIC_VERSION`) is
+    rebuilt with this core's arithmetic, and its checkpoints are not compared (they cannot
+    match bit for bit); ``other_arithmetic`` names such maps. With a ``sink``, that sink's new
+    checkpoints carry the digests of this arithmetic, so the new file replays on its own.
+
     Parameters
     ----------
-    path : the recording (complete or truncated)
+    path : the recording (complete, cut or damaged: replay stops at the first cut or damage)
     sink : if given, every config, input and checkpoint is written again into this recorder
         (used by ``mcsm serve --restore``: the new file replays on its own)
     progress : called with (bytes read, file size) at most ten times a second
@@ -493,6 +909,12 @@ def replay(path: str | os.PathLike[str], *, sink: Recorder | None = None,
                           snapshots_kept=int(d.get("snapshots_kept", DEFAULT_SNAPSHOTS_KEPT)))
             rep.states[name] = st
             rep.configs[name] = dict(d)
+            version = d.get("arithmetic_version", reader.arithmetic_version)
+            rep.arithmetic_versions[name] = version if type(version) is int else -1
+            if version != ARITHMETIC_VERSION:
+                log.warning("%s: map %r was recorded by arithmetic version %s; this mcsm "
+                            "computes with version %d: its checkpoints are not compared",
+                            path, name, version, ARITHMETIC_VERSION)
             if sink is not None:
                 sink.config(st, int(d.get("checkpoint_every", 100)), server_id=server_id,
                             restored_from=str(path))
@@ -508,6 +930,11 @@ def replay(path: str | os.PathLike[str], *, sink: Recorder | None = None,
                 rep.divergence = (f"map {name!r}: checkpoint at seq {cp.seq} but replay is at "
                                   f"seq {st.seq}")
                 break
+            if name in rep.other_arithmetic:
+                rep.checkpoints_other_arithmetic += 1
+                if sink is not None:
+                    sink.checkpoint(name, cp.seq, st.digest(), cp.reason)
+                continue
             got = st.digest()
             if got != cp.digest:
                 rep.divergence = (f"map {name!r}: digest differs at seq {cp.seq} "
@@ -539,21 +966,153 @@ def replay(path: str | os.PathLike[str], *, sink: Recorder | None = None,
             sink.input(op, name, ack.seq, int(d["recv_ns"]), str(d.get("sender", "")),
                        str(d.get("id", "")), bytes(d["request"]))
     rep.complete = reader.complete
+    stopped_early = rep.divergence is not None or stop_after is not None
+    rep.cut = reader.cut and not stopped_early
+    rep.damage = None if stopped_early else reader.damage
     rep.tail_error = reader.tail_error
     rep.library = reader.library
     rep.elapsed_s = time.perf_counter() - t0
     return rep
 
 
-def progress_bar(stream: Any = None, width: int = 30) -> Callable[[int, int], None]:
-    """A text progress bar over bytes read, drawn on stderr with ``\\r`` (caller ends the line)."""
-    out = stream if stream is not None else sys.stderr
+# --------------------------------------------------------------------------------------------
+# Recovery
+# --------------------------------------------------------------------------------------------
 
-    def draw(done: int, total: int) -> None:
-        frac = 1.0 if total <= 0 else min(1.0, done / total)
-        n = int(round(frac * width))
-        out.write(f"\r[{'#' * n}{'.' * (width - n)}] {100 * frac:5.1f}% "
-                  f"{done / 1e6:.1f}/{total / 1e6:.1f} MB")
-        out.flush()
+@dataclass
+class RecoverReport:
+    """What :func:`recover` copied."""
 
-    return draw
+    source_complete: bool
+    source_cut: bool
+    damage: str | None
+    tail_error: str | None
+    messages: Counter[str] = field(default_factory=Counter)  # per topic
+    chunks_after_damage: int = 0
+    bytes_written: int = 0
+
+    @property
+    def n_inputs(self) -> int:
+        return sum(n for t, n in self.messages.items() if t in TOPIC_OPS)
+
+
+def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str],
+            progress: Callable[[int, int], None] | None = None) -> RecoverReport:
+    """Write a clean, indexed copy of every complete record of ``src`` (cut or damaged) to the
+    new file ``dst``.
+
+    Records are copied as they are, except that each message gets ``publish_time <=
+    log_time`` (files of format 1 had them the other way round). After damage in a chunked
+    file, the intact chunks that follow (CRC checked) are copied too.
+
+    Raises
+    ------
+    RecordingError
+        If ``src`` is not an MCAP file or ``dst`` exists.
+    OSError
+        If a file cannot be opened.
+    """
+    reader = RecordingReader(src, progress)
+    out = Path(dst)
+    if out.exists():
+        raise RecordingError(str(out), "exists; refusing to overwrite")
+    with open(out, "xb") as fo:
+        w = ChunkPerInputWriter(fo, lz4=True, library=f"mcsm {__version__} recover")
+        schema_ids: dict[tuple[str, str, bytes], int] = {}
+        channel_ids: dict[tuple[str, str, int], int] = {}
+        channels: dict[int, Channel] = {}
+        schemas: dict[int, Schema] = {}
+        counts: Counter[str] = Counter()
+
+        def copy(r: Any) -> None:
+            if isinstance(r, Schema):
+                schemas[r.id] = r
+            elif isinstance(r, Channel):
+                channels[r.id] = r
+            elif isinstance(r, Metadata):
+                w.add_metadata(r.name, dict(r.metadata))
+            elif isinstance(r, Message) and r.channel_id in channels:
+                ch = channels[r.channel_id]
+                sid = 0
+                sch = schemas.get(ch.schema_id)
+                if sch is not None:
+                    skey = (sch.name, sch.encoding, bytes(sch.data))
+                    if skey not in schema_ids:
+                        schema_ids[skey] = w.register_schema(sch.name, sch.encoding, sch.data)
+                    sid = schema_ids[skey]
+                ckey = (ch.topic, ch.message_encoding, sid)
+                if ckey not in channel_ids:
+                    channel_ids[ckey] = w.register_channel(ch.topic, ch.message_encoding, sid,
+                                                           dict(ch.metadata))
+                lo, hi = sorted((int(r.log_time), int(r.publish_time)))
+                w.add_message(channel_ids[ckey], log_time=hi, data=r.data, publish_time=lo,
+                              sequence=r.sequence)
+                counts[ch.topic] += 1
+
+        for r in reader.raw():
+            copy(r)
+        n_after = 0
+        if reader.damage is not None:
+            for _, records in scan_chunks(src, reader.stop_offset + 1):
+                n_after += 1
+                for r in records:
+                    copy(r)
+        w.finish()
+        fo.flush()
+        os.fsync(fo.fileno())
+    return RecoverReport(source_complete=reader.complete, source_cut=reader.cut,
+                         damage=reader.damage, tail_error=reader.tail_error, messages=counts,
+                         chunks_after_damage=n_after, bytes_written=out.stat().st_size)
+
+
+# --------------------------------------------------------------------------------------------
+# Progress
+# --------------------------------------------------------------------------------------------
+
+class Progress:
+    """Progress over bytes: a tqdm bar when ``stream`` is a terminal; otherwise a plain line
+    (``label: 40% (12.0 of 30.0 MB)``) every ``every_s`` seconds and a last one at the end
+    (none for a run shorter than ``every_s``), so that logs get what a bar would say and
+    never a ``\\r``."""
+
+    def __init__(self, label: str, stream: Any = None, every_s: float = 10.0) -> None:
+        self.label = label
+        self.out = stream if stream is not None else sys.stderr
+        self.every_s = every_s
+        self._bar: Any = None
+        self._tty = bool(getattr(self.out, "isatty", lambda: False)())
+        self._last = time.monotonic()
+        self._lines = 0
+        self.done = False
+
+    def __call__(self, done: int, total: int) -> None:
+        if self.done:
+            return
+        if self._tty:
+            if self._bar is None:
+                from tqdm import tqdm
+
+                self._bar = tqdm(total=total, desc=self.label, unit="B", unit_scale=True,
+                                 file=self.out, leave=True, dynamic_ncols=True)
+            self._bar.update(done - self._bar.n)
+        else:
+            now = time.monotonic()
+            if now - self._last >= self.every_s or (done >= total and self._lines):
+                self._last = now
+                self._lines += 1
+                frac = 1.0 if total <= 0 else min(1.0, done / total)
+                self.out.write(f"{self.label}: {100 * frac:.0f}% ({done / 1e6:.1f} of "
+                               f"{total / 1e6:.1f} MB)\n")
+                self.out.flush()
+        if done >= total:
+            self.close()
+
+    def close(self) -> None:
+        if self._bar is not None and not self.done:
+            self._bar.close()
+        self.done = True
+
+
+def progress_bar(stream: Any = None, label: str = "replaying the recording") -> Progress:
+    """A :class:`Progress` over bytes read (a bar on a terminal, plain lines otherwise)."""
+    return Progress(label, stream)
