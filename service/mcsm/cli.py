@@ -343,6 +343,10 @@ def _state_line(complete: bool, cut: bool, damage: str | None, tail: str | None)
 
 
 # ------------------------------------------------------------------------------------ replay
+MACHINE_BOUND = ("method=paper in the quaternion space runs on numpy/BLAS: it replays "
+                 "bit-identically only on the machine family that recorded it")
+
+
 def replay_cmd(args: argparse.Namespace) -> int:
     from mcsm.core import ARITHMETIC_VERSION
     from mcsm.recording import RecordingError, replay
@@ -406,6 +410,8 @@ def replay_cmd(args: argparse.Namespace) -> int:
           f"({speed:.0f} ops/s); {rep.checkpoints_ok}/{n_cp} checkpoints match{not_compared}")
     for name, d in digests.items():
         print(f"map {name}: seq {rep.states[name].seq}, digest {d}")
+        if not rep.states[name].map.portable:
+            print(f"map {name}: {MACHINE_BOUND}")
     print(verdict)
     return code
 
@@ -502,6 +508,9 @@ def inspect_cmd(args: argparse.Namespace) -> int:
         print(f"time span: {span:.3f} s from {t0} UTC")
     for name, m in maps.items():
         print(f"map {name!r}: options {m['options']}")
+        opts = m["options"] if isinstance(m["options"], dict) else {}
+        if opts.get("method") == "paper" and opts.get("space") == "quaternion":
+            print(f"  {MACHINE_BOUND}")
         if m["arithmetic_version"] not in (None, reader.arithmetic_version):
             print(f"  arithmetic version {m['arithmetic_version']}")
         if m.get("restored_from"):

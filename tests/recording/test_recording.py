@@ -38,11 +38,11 @@ def at(rng: np.random.Generator, n: int, t: list[float]) -> np.ndarray:
 
 
 def record_session(path: Path, n: int, count: int, seed: int, checkpoint_every: int = 5,
-                   close: bool = True) -> tuple[MapState, list[bytes]]:
+                   close: bool = True, **options: object) -> tuple[MapState, list[bytes]]:
     """Drive Recorder + MapState exactly as the server's worker does, without Zenoh."""
     rng = np.random.default_rng(seed)
     rec = Recorder(path)
-    st = MapState("default", StochasticMap(n))
+    st = MapState("default", StochasticMap(n, **options))  # type: ignore[arg-type]
     rec.config(st, checkpoint_every)
     payloads = []
     for i in range(count):
@@ -217,6 +217,21 @@ def test_inspect_summarises(tmp_path: Path, capsys: pytest.CaptureFixture[str]) 
     assert mcsm_main(["inspect", str(path), "--json"]) == 0
     js = json.loads(capsys.readouterr().out)
     assert js["complete"] and js["maps"]["default"]["ops"] == {"update": 7}
+
+
+def test_machine_bound_maps_are_named(tmp_path: Path,
+                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """method=paper in the quaternion space runs on numpy: inspect and replay say so."""
+    path = tmp_path / "paper.mcap"
+    record_session(path, 8, 9, seed=5506, method="paper", space="quaternion")
+    assert mcsm_main(["inspect", str(path)]) == 0
+    assert "machine family that recorded it" in capsys.readouterr().out
+    assert mcsm_main(["replay", str(path), "--no-progress"]) == 0
+    assert "machine family that recorded it" in capsys.readouterr().out
+    portable = tmp_path / "joint.mcap"
+    record_session(portable, 8, 9, seed=5506, method="paper")  # tangent chart: the kernel
+    assert mcsm_main(["replay", str(portable), "--no-progress"]) == 0
+    assert "machine family" not in capsys.readouterr().out
 
 
 def _digest_file(mcap: Path) -> dict[str, tuple[int, str]]:
