@@ -314,7 +314,7 @@ def cmd_info(args: argparse.Namespace) -> int:
            "seq": info.seq, "digest": info.digest, "n_frames": info.n_frames,
            "components": {k: list(v) for k, v in info.components.items()},
            "rejected": info.rejected, "server_id": info.server_id,
-           "recording": info.recording}
+           "recording": info.recording, "verdicts": dict(info.verdicts)}
     comps = ", ".join(f"{root} ({len(frames)} frames)" for root, frames in
                       list(info.components.items())[:10])
     more = " ..." if len(info.components) > 10 else ""
@@ -322,6 +322,8 @@ def cmd_info(args: argparse.Namespace) -> int:
             f"{len(info.components)} components{': ' + comps + more if comps else ''}\n"
             f"seq {info.seq}, digest {info.digest}\n"
             f"rejected inputs {info.rejected}; recording {info.recording or '-'}")
+    if info.verdicts:
+        text += "\nverdicts: " + ", ".join(f"{k} {v}" for k, v in sorted(info.verdicts.items()))
     _print(args, obj, text)
     return EXIT_OK
 
