@@ -1,18 +1,48 @@
-"""The README's Python example runs as written (the README must stay true)."""
+"""The README stays true: its Python example runs as written against a real server, and the
+tour's command lines parse."""
 
 from __future__ import annotations
 
 import re
+import signal
 import subprocess
 import sys
 from pathlib import Path
 
+from tests.service.daemon_util import start_daemon
+
 README = Path(__file__).resolve().parents[1] / "README.md"
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7457"
 
 
-def test_readme_python_example_runs() -> None:
+def test_readme_python_example_runs(tmp_path: Path) -> None:
     blocks = re.findall(r"```python\n(.*?)```", README.read_text(), re.S)
     assert blocks, "the README has no Python example"
-    code = blocks[0] + "\nassert samples.shape == (1000, 7) and cov.shape == (6, 6)\n"
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert r.returncode == 0, r.stderr
+    code = blocks[0]
+    assert DEFAULT_ENDPOINT in code  # the example talks to a default server...
+    d = start_daemon(tmp_path, "--samples", "1000", "--gate", "0.99")
+    try:  # ...here one on a free port
+        code = code.replace(DEFAULT_ENDPOINT, d.endpoint)
+        code += ("\nassert samples.shape == (1000, 7) and cov.shape == (6, 6)\n"
+                 "assert ack.seq == 1 and ack.kind == 'new_component'\n")
+        r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                           timeout=120, cwd=tmp_path)
+        assert r.returncode == 0, r.stderr
+    finally:
+        assert d.stop(signal.SIGINT) == 0, d.log_text()
+
+
+def test_readme_tour_commands_parse() -> None:
+    """Every ``mcsm``/``mcsm-client`` line of the tour is accepted by the parsers."""
+    from mcsm.cli import _parser as mcsm_parser
+    from mcsm_client.cli import build_parser as client_parser
+
+    sh = re.findall(r"```sh\n(.*?)```", README.read_text(), re.S)
+    text = "\n".join(sh).replace("\\\n", " ")  # join continued lines
+    lines = [ln.split("#")[0].strip().rstrip("&").strip() for ln in text.splitlines()]
+    cmds = [ln.split() for ln in lines if ln.startswith(("mcsm ", "mcsm-client "))]
+    assert len(cmds) >= 8
+    for argv in cmds:
+        parser = mcsm_parser() if argv[0] == "mcsm" else client_parser()
+        args = [a.replace("SERVER", "127.0.0.1") for a in argv[1:] if a != "\\"]
+        parser.parse_args(args)
