@@ -34,7 +34,7 @@ def test_readme_python_example_runs(tmp_path: Path) -> None:
 
 def test_readme_tour_commands_parse() -> None:
     """Every ``mcsm``/``mcsm-client`` line of the tour is accepted by the parsers."""
-    from mcsm.cli import _parser as mcsm_parser
+    from mcsm.cli import build_parser as mcsm_parser
     from mcsm_client.cli import build_parser as client_parser
 
     sh = re.findall(r"```sh\n(.*?)```", README.read_text(), re.S)

@@ -11,7 +11,7 @@ Formats (each line one record; unknown tags are counted and skipped):
 * GTSAM's Victoria Park text: ``ODOMETRY i j dx dy dtheta`` + 3x3 covariance upper triangle,
   ``LANDMARK i j dx dy`` + 2x2 covariance upper triangle (Cartesian, not bearing/range).
 
-Noise conventions follow ``shared/notes/datasets.md`` (checked against the data by the chi2
+Noise conventions follow the datasets' own documentation (checked against the data by the chi2
 test in ``tests/clients/test_datasets_gtsam.py``). "Upper triangle" means the entries of a
 symmetric (or, for square-root information, upper-triangular) matrix written row by row. The
 iSAM-style files that contain ``LANDMARK2`` (``victoriaPark_reduced_1k.g2o``,

@@ -59,7 +59,7 @@ EXIT_CODES_HELP = """exit codes:
 (replay reports the first that applies in the order 1, 5, 4, 6)"""
 
 
-def _parser() -> argparse.ArgumentParser:
+def build_parser() -> argparse.ArgumentParser:
     from mcsm.connect import add_connection_args
 
     p = argparse.ArgumentParser(prog="mcsm", description=__doc__.split("\n")[0] if __doc__
@@ -158,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
 
     # `mcsm --listen X serve` works like `mcsm serve --listen X`
     argv = flags_after_command(sys.argv[1:] if argv is None else list(argv), "serve")
-    args = _parser().parse_args(argv)
+    args = build_parser().parse_args(argv)
     try:
         if args.command == "serve":
             return serve(args)

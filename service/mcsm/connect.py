@@ -6,7 +6,7 @@ can run on one host without a clash); clients open a Zenoh *client* session conn
 Both turn off multicast and gossip scouting (nothing leaves loopback), and the server turns off
 shared memory (it bypasses ``max_message_size``), turns off batching (a 56 KB reply takes
 ~1.3 ms batched vs ~0.2 ms not) and caps incoming messages at 8 MiB
-(``shared/notes/ecosystem.md`` §0).
+(measured: docs/design.md, "Wire contract").
 
 A ``--zenoh-config FILE`` (JSON5), or else the file named by the ``ZENOH_CONFIG`` environment
 variable (as Zenoh's own tools read it), replaces these defaults entirely, for real deployments
@@ -37,12 +37,13 @@ from typing import Any, Literal
 
 import zenoh
 
+from mcsm import wire
 from mcsm.errors import BadMessage
 
 DEFAULT_PORT = 7457
 DEFAULT_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_PORT}"
-DEFAULT_MAP = "default"
-DEFAULT_PREFIX = "mcsm"
+DEFAULT_MAP = wire.DEFAULT_MAP
+DEFAULT_PREFIX = wire.DEFAULT_PREFIX
 MAX_MESSAGE_BYTES = 8 * 1024 * 1024
 CONNECT_TIMEOUT_MS = 2000
 

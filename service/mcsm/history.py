@@ -3,7 +3,7 @@
 An accepted constraint cannot be subtracted from an ensemble map: every later update used the
 samples it moved. The exact way back is to restore a state from before it and apply every
 later input again without it; deterministic replay makes that bit-identical to a map that
-never had it (``shared/notes/outliers.md``'s measurement, issue 16). :class:`History` keeps,
+never had it (measured in docs/outliers.md). :class:`History` keeps,
 for one map, a snapshot every ``snapshot_every`` operations (the last ``snapshots_kept`` of
 them, in memory) and the decoded inputs since the oldest kept snapshot: the *retract window*.
 

@@ -10,7 +10,7 @@ Threads and ownership:
   frames (``update/<ns>``, ``remove/<ns>``), and puts the request on a bounded queue. A full
   queue is answered at once with a ``Busy`` error (a ``LimitExceeded``): the client may retry
   later with the same request id.
-* One worker thread owns every :class:`~mcsm.recording.MapState` and the
+* One worker thread owns every :class:`~mcsm.state.MapState` and the
   :class:`~mcsm.recording.Recorder`. It takes requests in arrival order, assigns each applied
   operation the map's next sequence number, applies it through the core, records it (flushed),
   and only then acknowledges and publishes the event. Queries, info and exports go through the
@@ -50,14 +50,12 @@ from mcsm.core.smap import StochasticMap
 from mcsm.errors import Busy, Forbidden, InternalError, McsmError, UnknownFrame
 from mcsm.history import DEFAULT_SNAPSHOT_EVERY, DEFAULT_SNAPSHOTS_KEPT
 from mcsm.recording import (
-    DEFAULT_ID_TTL_S,
-    DEFAULT_LRU,
-    MapState,
     Recorder,
     RecordingError,
     decode_input,
     replay,
 )
+from mcsm.state import DEFAULT_ID_TTL_S, DEFAULT_LRU, MapState
 
 log = logging.getLogger(__name__)
 

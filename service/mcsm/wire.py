@@ -29,6 +29,7 @@ import msgpack
 import numpy as np
 import numpy.typing as npt
 
+from mcsm.core.at import QUAT_NORM_TOL as _CORE_QUAT_NORM_TOL
 from mcsm.core.names import FRAME_RULE, is_frame_name
 from mcsm.errors import (
     BadMessage,
@@ -59,8 +60,8 @@ MAX_SAMPLES = 100_000
 MAX_SUBMAP_FRAMES = 100_000
 MAX_ID_CHARS = 128
 MAX_SENDER_CHARS = 256
-QUAT_NORM_TOL = 1e-6
-"""Tolerance on ``| |q|^2 - 1 |`` for every sample's quaternion."""
+QUAT_NORM_TOL = _CORE_QUAT_NORM_TOL
+"""Tolerance on ``| |q|^2 - 1 |`` for every sample's quaternion (the core's, one rule)."""
 
 F8 = np.dtype("<f8")
 _MAP_RE = re.compile(r"[A-Za-z0-9_.+-]{1,64}")

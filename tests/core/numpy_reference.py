@@ -65,7 +65,7 @@ from mcsm.core.at import (
     to_space,
 )
 from mcsm.core.names import FRAME_RULE, is_frame_name
-from mcsm.core.quat import _L_INDEX, _L_SIGN, qconj, qrot
+from mcsm.core.quat import L_INDEX, L_SIGN, qconj, qrot
 from mcsm.errors import (
     FrameExists,
     InvalidOperation,
@@ -760,7 +760,7 @@ class StochasticMap:
         self._run_blocks(first, blocks)
         mean = moments[:, -1, :]
         q_bar = mean[:, 3:] / np.linalg.norm(mean[:, 3:], axis=1, keepdims=True)
-        basis = (q_bar[:, _L_INDEX] * _L_SIGN)[:, :, 1:]  # (M, 4, 3)
+        basis = (q_bar[:, L_INDEX] * L_SIGN)[:, :, 1:]  # (M, 4, 3)
         # (as an oracle: second moments about the mean, not Σx²/N − x̄², whose cancellation
         # costs digits the kernel's shifted sums keep)
         dev = edges - mean[:, None, :]
@@ -833,11 +833,11 @@ def _tangent_part(a: Array, q_bar: Array) -> Array:
 
 def _merge_points(p_g: Array, p_x: Array) -> Array:
     """Revised merge (eq. 6) of two 3-D point sample sets (the main edge of a point update)."""
-    from mcsm.core.at import _merge_vectors, sample_cov
+    from mcsm.core.at import merge_vectors, sample_cov
 
     cov_c, cov_d, cov_diff = sample_cov(p_g), sample_cov(p_x), sample_cov(p_g - p_x)
     c_x = 0.5 * (cov_c + cov_d - cov_diff)
-    return _merge_vectors(p_g, p_x, cov_c - c_x, cov_diff)
+    return merge_vectors(p_g, p_x, cov_c - c_x, cov_diff)
 
 
 __all__ = ["StochasticMap", "UpdateResult", "RemoveResult", "Submap", "check_frame_name"]

@@ -32,7 +32,6 @@ from mcsm.recording import (
     INPUT_TOPICS,
     TOPIC_CHECKPOINT,
     TOPIC_CONFIG,
-    MapState,
     Progress,
     Recorder,
     RecordingReader,
@@ -40,6 +39,7 @@ from mcsm.recording import (
     replay,
     schema_bytes,
 )
+from mcsm.state import MapState
 from mcsm_client.client import MapClient
 
 from tests.recording.test_recording import record_session

@@ -16,7 +16,6 @@ from mcsm.recording import (
     INPUT_TOPICS,
     TOPIC_CHECKPOINT,
     TOPIC_CONFIG,
-    MapState,
     Recorder,
     RecordingError,
     RecordingReader,
@@ -24,6 +23,7 @@ from mcsm.recording import (
     replay,
     schema_bytes,
 )
+from mcsm.state import MapState
 
 RECORDINGS = Path(__file__).resolve().parents[2] / "recordings"
 # shipped recordings have a .digest beside them; run-*.mcap from local `mcsm serve` runs do not

@@ -93,7 +93,7 @@ def test_imports_stay_light() -> None:
     """``import mcsm``, the CLI and the numpy side of mcsm.viz load neither matplotlib nor
     foxglove (they come with the viz extra, imported by the commands that draw)."""
     code = ("import sys, mcsm, mcsm.core, mcsm.cli, mcsm.viz.scene, mcsm.viz.commands; "
-            "mcsm.cli._parser(); "
+            "mcsm.cli.build_parser(); "
             "bad = {'matplotlib', 'foxglove'} & set(sys.modules); print(sorted(bad))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=120, check=True)

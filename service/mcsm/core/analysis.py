@@ -6,7 +6,7 @@ state moves by one affine map per update, so sample order and O(M·N) cost are p
 a rule can be swapped without touching the map. With ``S = C_yy + R`` (``R = cov(z)``):
 
 * ``enkf``: perturbed observations, ``w_i = S⁺ (z_i − y_i)``: the plain joint update. Over
-  thousands of updates it collapses at fixed N (``shared/notes/consistency.md``).
+  thousands of updates it collapses at fixed N (docs/design.md, "Consistency at fixed N").
 * ``denkf``: deterministic EnKF (Sakov & Oke 2008): the mean moves with the full gain using the
   observation's mean, the anomalies with half the gain: ``w_i = S⁺ (z̄ − ȳ) − ½ S⁺ yc_i``.
 * ``ensrf``: ensemble square-root filter (Whitaker & Hamill 2002), mean as in ``denkf``,

@@ -19,8 +19,8 @@ import numpy as np
 import numpy.typing as npt
 
 from mcsm.core.quat import (
-    _L_INDEX,
-    _L_SIGN,
+    L_INDEX,
+    L_SIGN,
     align_hemisphere,
     mean_rotation,
     qconj,
@@ -226,7 +226,7 @@ def from_space(v: Array, space: Space, q_ref: Array) -> Array:
     return np.concatenate((v[..., :3], qmul(q_ref[..., None, :], rel)), axis=-1)
 
 
-def _merge_vectors(p_a: Array, p_b: Array, c_a: Array, c_sum: Array) -> Array:
+def merge_vectors(p_a: Array, p_b: Array, c_a: Array, c_sum: Array) -> Array:
     """``P_A + C_A (C_sum)⁺ (P_B − P_A)`` sample by sample (PAPER eq. 2-3)."""
     gain = c_a @ scaled_pinv(c_sum)
     return p_a + (p_b - p_a) @ np.swapaxes(gain, -1, -2)
@@ -241,7 +241,7 @@ def merge(x_a: Array, x_b: Array, space: Space = "tangent") -> Array:
     p_a, q_ref = to_space(x_a, space)
     p_b, _ = to_space(x_b, space, q_ref)
     c_a = sample_cov(p_a)
-    return from_space(_merge_vectors(p_a, p_b, c_a, c_a + sample_cov(p_b)), space, q_ref)
+    return from_space(merge_vectors(p_a, p_b, c_a, c_a + sample_cov(p_b)), space, q_ref)
 
 
 def merge_correlated(x_c: Array, x_d: Array, space: Space = "tangent") -> Array:
@@ -259,7 +259,7 @@ def merge_correlated(x_c: Array, x_d: Array, space: Space = "tangent") -> Array:
     a_diff = a_c - a_d
     cov_c, cov_d, cov_diff = (np.swapaxes(a, -1, -2) @ a / (n - 1) for a in (a_c, a_d, a_diff))
     c_x = 0.5 * (cov_c + cov_d - cov_diff)
-    return from_space(_merge_vectors(p_c, p_d, cov_c - c_x, cov_diff), space, q_ref)
+    return from_space(merge_vectors(p_c, p_d, cov_c - c_x, cov_diff), space, q_ref)
 
 
 def mean_and_cov(x: Array) -> tuple[Array, Array]:
@@ -289,7 +289,7 @@ _DELTA = np.arange(7, 13)
 def _lmul_rows(q: Array) -> Array:
     """Left-multiplication matrices ``L(q)`` (``qmul(q, p) = L(q) p``): ``(..., 4)`` ->
     ``(..., 4, 4)``."""
-    return q[..., _L_INDEX] * _L_SIGN
+    return q[..., L_INDEX] * L_SIGN
 
 
 def _planar_at(x: Array, minus_identity: bool = False) -> tuple[Array, Array]:

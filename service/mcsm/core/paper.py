@@ -145,11 +145,11 @@ def _merge_main_edge(g: Array, x: Array, point: bool, space: str) -> tuple[Array
 
 def _merge_points(p_g: Array, p_x: Array) -> Array:
     """Revised merge (eq. 6) of two 3-D point sample sets (the main edge of a point update)."""
-    from mcsm.core.at import _merge_vectors, sample_cov
+    from mcsm.core.at import merge_vectors, sample_cov
 
     cov_c, cov_d, cov_diff = sample_cov(p_g), sample_cov(p_x), sample_cov(p_g - p_x)
     c_x = 0.5 * (cov_c + cov_d - cov_diff)
-    return _merge_vectors(p_g, p_x, cov_c - c_x, cov_diff)
+    return merge_vectors(p_g, p_x, cov_c - c_x, cov_diff)
 
 
 def _pin(edges: Array, is_point: npt.NDArray[np.bool_]) -> None:

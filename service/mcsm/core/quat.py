@@ -26,9 +26,9 @@ def _one_set_over_many(small: Array, big: Array) -> bool:
         big.size >= 16 * n * big.shape[-1]
 
 
-# qmul(p, q) = L(p) q with L(p)[i, j] = _L_SIGN[i, j] * p[_L_INDEX[i, j]]
-_L_INDEX = np.array([[0, 1, 2, 3], [1, 0, 3, 2], [2, 3, 0, 1], [3, 2, 1, 0]])
-_L_SIGN = np.array([[1, -1, -1, -1], [1, 1, -1, 1], [1, 1, 1, -1], [1, -1, 1, 1]], dtype=float)
+# qmul(p, q) = L(p) q with L(p)[i, j] = L_SIGN[i, j] * p[L_INDEX[i, j]]
+L_INDEX = np.array([[0, 1, 2, 3], [1, 0, 3, 2], [2, 3, 0, 1], [3, 2, 1, 0]])
+L_SIGN = np.array([[1, -1, -1, -1], [1, 1, -1, 1], [1, 1, 1, -1], [1, -1, 1, 1]], dtype=float)
 
 
 def qmul(p: Array, q: Array) -> Array:
@@ -41,11 +41,11 @@ def qmul(p: Array, q: Array) -> Array:
     if p.ndim >= 2 and p.shape[-2] == 1 and q.ndim == p.ndim and q.shape[-2] >= 16 and \
             p.shape[:-2] == q.shape[:-2]:
         # one quaternion per sample set (a per-edge reference) times all its samples
-        left = p.reshape(-1, 4)[:, _L_INDEX] * _L_SIGN  # (M, 4, 4)
+        left = p.reshape(-1, 4)[:, L_INDEX] * L_SIGN  # (M, 4, 4)
         return np.einsum("mij,mnj->mni", left, q.reshape(left.shape[0], -1, 4),
                          optimize=True).reshape(q.shape)
     if _one_set_over_many(p, q):
-        left = p.reshape(-1, 4)[:, _L_INDEX] * _L_SIGN  # (N, 4, 4)
+        left = p.reshape(-1, 4)[:, L_INDEX] * L_SIGN  # (N, 4, 4)
         return np.einsum("nij,mnj->mni", left, q.reshape(-1, p.shape[-2], 4),
                          optimize=True).reshape(q.shape)
     pw, px, py, pz = p[..., 0], p[..., 1], p[..., 2], p[..., 3]

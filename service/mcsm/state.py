@@ -1,0 +1,168 @@
+"""The state a recording reproduces: one named map, its sequence number, the request ids it
+remembers (idempotency), its verdict counts and its retract window (:mod:`mcsm.history`).
+
+The live server and replay (:func:`mcsm.recording.replay`) both apply inputs through
+:meth:`MapState.apply`, so a replayed map is built by the same code path as the live one.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter, OrderedDict
+from dataclasses import replace
+from typing import Any
+
+from mcsm import wire
+from mcsm.core.smap import StochasticMap
+from mcsm.errors import InvalidOperation, McsmError, RequestIdReused
+from mcsm.history import DEFAULT_SNAPSHOT_EVERY, DEFAULT_SNAPSHOTS_KEPT, History
+
+DEFAULT_LRU = 100_000
+"""Request ids (with their acks) each map remembers at most (about 60 MB at most)."""
+DEFAULT_ID_TTL_S = 600.0
+"""Seconds a request id is remembered (ten minutes: a server restart takes 1-8 s)."""
+
+
+
+class MapState:
+    """One named map plus what replay must reproduce: its sequence number and the recent acks.
+
+    The live server and :func:`replay` both apply inputs through :meth:`apply`, so a replayed
+    map is built by the same code path as the live one. Not thread-safe: one worker owns it.
+    """
+
+    def __init__(self, name: str, smap: StochasticMap, lru_size: int = DEFAULT_LRU,
+                 id_ttl_s: float = DEFAULT_ID_TTL_S, *,
+                 snapshot_every: int = DEFAULT_SNAPSHOT_EVERY,
+                 snapshots_kept: int = DEFAULT_SNAPSHOTS_KEPT) -> None:
+        self.name = name
+        self.map = smap
+        self.history = History(max(1, int(snapshot_every)), max(1, int(snapshots_kept)))
+        self.history.start(smap, 0)
+        self.last_changed: dict[str, wire.Verdict] = {}  # verdicts the last retract changed
+        self.n_samples = int(smap.n_samples)
+        self.seq = 0
+        self.lru_size = int(lru_size)
+        self.id_ttl_s = float(id_ttl_s)
+        # request id -> (ack, request fingerprint, receive time ns), oldest first
+        self._acks: OrderedDict[str, tuple[wire.Ack, str, int]] = OrderedDict()
+        self.rejected = 0
+        self.rejected_by_error: Counter[str] = Counter()
+        self.verdicts: Counter[str] = Counter()  # applied updates per verdict status
+        self._digest: tuple[int, str] | None = None
+
+    def digest(self) -> str:
+        """``map.state_digest()``, cached until the next applied operation."""
+        if self._digest is None or self._digest[0] != self.seq:
+            self._digest = (self.seq, self.map.state_digest())
+        return self._digest[1]
+
+    def _forget(self, now_ns: int) -> None:
+        """Drop ids older than ``id_ttl_s`` and beyond ``lru_size`` (oldest first)."""
+        cutoff = now_ns - int(self.id_ttl_s * 1e9)
+        while self._acks:
+            _, (_, _, t_ns) = next(iter(self._acks.items()))
+            if t_ns >= cutoff and len(self._acks) <= self.lru_size:
+                break
+            self._acks.popitem(last=False)
+
+    def lookup(self, request_id: str, fingerprint: str | None = None,
+               now_ns: int | None = None) -> wire.Ack | None:
+        """The original ack of an already applied request id (flagged duplicate), or None.
+
+        With ``now_ns`` (the new request's receive time), ids older than ``id_ttl_s`` are
+        forgotten first; without it only the count bound applies.
+
+        Raises
+        ------
+        RequestIdReused
+            If the id is remembered for a request with another ``fingerprint``.
+        """
+        if now_ns is not None:
+            self._forget(now_ns)
+        hit = self._acks.get(request_id)
+        if hit is None:
+            return None
+        ack, fp, _ = hit
+        if fingerprint is not None and fp and fp != fingerprint:
+            raise RequestIdReused(request_id, ack.seq)
+        return replace(ack, duplicate=True)
+
+    def apply(self, op: str, req: Any, *, time_ns: int | None = None,
+              fingerprint: str | None = None) -> wire.Ack:
+        """Apply one decoded input received at ``time_ns``; returns its ack (seq ``seq + 1``).
+        ``fingerprint`` is ``wire.request_fingerprint(op, req)`` if the caller has it.
+
+        Raises
+        ------
+        McsmError
+            Whatever the core refuses; the map and ``seq`` are then unchanged.
+        """
+        self.last_changed = {}
+        if op == "update":
+            r = self.map.update(req.a, req.b, req.samples, trusted=req.trusted)
+            v = r.verdict
+            verdict = wire.Verdict(v.status, v.nis, v.dof, v.threshold, v.reason, req.stamp_ns)
+            ack = wire.Ack(req.request_id, self.seq + 1, op, r.kind, r.component,
+                           frames_added=tuple(r.frames_added), verdict=verdict)
+            self.verdicts[verdict.status] += 1
+        elif op == "remove":
+            rr = self.map.remove(req.frame)
+            ack = wire.Ack(req.request_id, self.seq + 1, op, "remove", rr.component,
+                           frames_removed=tuple(rr.frames_removed))
+        elif op == "import":
+            r = self.map.import_component(req.submap.to_core())
+            ack = wire.Ack(req.request_id, self.seq + 1, op, r.kind, r.component,
+                           frames_added=tuple(r.frames_added))
+        elif op in ("retract", "reinstate"):
+            ack = self._retract(op, req)
+        else:
+            raise McsmError(f"unknown operation {op!r}")
+        self.seq = ack.seq
+        t_ns = time.time_ns() if time_ns is None else int(time_ns)
+        self._acks.pop(req.request_id, None)
+        fp = fingerprint if fingerprint is not None else wire.request_fingerprint(op, req)
+        self._acks[req.request_id] = (ack, fp, t_ns)
+        self._forget(t_ns)
+        self.history.record(ack.seq, op, req.request_id, req, ack.verdict, self.map)
+        return ack
+
+    def _retract(self, op: str, req: Any) -> wire.Ack:
+        """Leave the update ``req.target`` out (retract) or put it back (reinstate): restore
+        the last snapshot before it and apply every later input of the window again."""
+        target = self.history.target(req.target, op == "retract")
+        before = {e.request_id: e.verdict for e in self.history.log if e.op == "update"}
+        smap, changed, commit = self.history.rebuild(target, op == "retract", self.map.threads)
+        self.map = smap
+        commit()
+        for rid, v in changed.items():
+            old = before.get(rid)
+            if old is not None:
+                self.verdicts[old.status] -= 1
+            self.verdicts[v.status] += 1
+            hit = self._acks.get(rid)
+            if hit is not None:
+                self._acks[rid] = (replace(hit[0], verdict=v), hit[1], hit[2])
+        self.verdicts += Counter()  # drop zero counts
+        self.last_changed = changed
+        return wire.Ack(req.request_id, self.seq + 1, op, op, None, verdict=target.verdict)
+
+    def verdict_of(self, request_id: str) -> wire.Ack:
+        """The ack (with its current verdict) of a remembered request id.
+
+        Raises
+        ------
+        InvalidOperation
+            If the id is not remembered (never applied, or forgotten: ``--id-ttl-s``).
+        """
+        hit = self._acks.get(request_id)
+        if hit is None:
+            raise InvalidOperation(f"request {request_id!r} is unknown or forgotten")
+        return hit[0]
+
+    def count_rejected(self, err: McsmError) -> None:
+        self.rejected += 1
+        self.rejected_by_error[type(err).__name__] += 1
+
+
+__all__ = ["MapState", "DEFAULT_LRU", "DEFAULT_ID_TTL_S"]
