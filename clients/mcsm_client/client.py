@@ -2,8 +2,8 @@
 
 Every call is an acknowledged RPC (a Zenoh ``get`` on ``<prefix>/<map>/<op>``, answered by the
 server's queryable), never a fire-and-forget ``put``: the reply is the only proof the server
-applied and recorded an update (a Zenoh ``put`` can be dropped silently). Each state-changing request
-carries a client-chosen request id; when an attempt gets no reply it is sent again with the
+applied and recorded an update (a Zenoh ``put`` can be dropped silently). Each state-changing
+request carries a client-chosen request id; when an attempt gets no reply it is sent again with the
 *same* id, and the server answers a retried id it already applied with the original
 acknowledgement, so a retry never applies an update twice (ids are remembered for ten minutes
 by default, across a ``--restore`` too).
