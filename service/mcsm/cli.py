@@ -111,6 +111,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--snapshots-kept", type=int, default=5, metavar="S",
                    help="snapshots kept per map (default 5): updates of the last (S-1)*K to "
                         "S*K operations can be retracted")
+    s.add_argument("--disk-snapshot-every", type=int, default=1000, metavar="K",
+                   help="record each map's whole state every K operations (default 1000; 0: "
+                        "never); --restore starts from the latest one plus the inputs after it")
     s.add_argument("--id-ttl-s", type=float, default=600.0, metavar="S",
                    help="remember each applied request id this long, so a retry (also after "
                         "a --restore) is not applied twice (default 600)")
@@ -242,7 +245,8 @@ def serve(args: argparse.Namespace) -> int:
         record=record, restore=args.restore, checkpoint_every=max(1, args.checkpoint_every),
         queue_size=args.queue_size, fsync=args.fsync, lru_size=max(1, args.id_memory),
         id_ttl_s=max(0.0, args.id_ttl_s), snapshot_every=max(1, args.snapshot_every),
-        snapshots_kept=max(1, args.snapshots_kept))
+        snapshots_kept=max(1, args.snapshots_kept),
+        disk_snapshot_every=max(0, args.disk_snapshot_every))
     try:
         for name in opts.maps:
             wire.map_keys(name, opts.prefix)

@@ -13,8 +13,9 @@ Inputs re-applied after a retraction are gated again: their verdicts may change 
 closure rejected because of a wrong one before it can now be accepted); :meth:`rebuild`
 returns which did.
 
-Nothing here touches the recording: the snapshots live in memory only, so ``--restore`` still
-rebuilds a map by replaying its recording from the beginning.
+Nothing here touches the recording: these snapshots live in memory. The recording holds its
+own, less frequent ones (``mcsm serve --disk-snapshot-every``), from which ``--restore``
+starts; the retract window of a restored map begins there.
 """
 
 from __future__ import annotations

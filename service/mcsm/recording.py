@@ -80,14 +80,18 @@ log = logging.getLogger(__name__)
 
 TOPIC_CONFIG = "/mcsm/config"
 TOPIC_CHECKPOINT = "/mcsm/checkpoint"
+TOPIC_SNAPSHOT = "/mcsm/snapshot"
 INPUT_TOPICS = {"update": "/mcsm/in/update", "remove": "/mcsm/in/remove",
                 "import": "/mcsm/in/submap_import", "retract": "/mcsm/in/retract",
                 "reinstate": "/mcsm/in/reinstate"}
 TOPIC_OPS = {v: k for k, v in INPUT_TOPICS.items()}
 _SCHEMAS = {TOPIC_CONFIG: ("mcsm.RecordConfig", "record_config.json"),
             TOPIC_CHECKPOINT: ("mcsm.RecordCheckpoint", "record_checkpoint.json"),
+            TOPIC_SNAPSHOT: ("mcsm.RecordSnapshot", "record_snapshot.json"),
             **{t: ("mcsm.RecordInput", "record_input.json") for t in INPUT_TOPICS.values()}}
-MAX_RECORD_BYTES = 2 * wire.MAX_PAYLOAD_BYTES
+MAX_RECORD_BYTES = 1 << 30
+"""Largest record read back: a state snapshot holds a whole map (M x N x 7 float64)."""
+SNAPSHOT_FORMAT = 1
 #: version of the file layout, in the ``mcsm`` metadata record ("mcsm recording v2")
 FORMAT_VERSION = 2
 #: "indexed-lz4" (chunked, indexes, CRCs, lz4 chunk compression; the default), "indexed" (the
@@ -329,6 +333,35 @@ def _write_all(fd: int, parts: list[bytes], total: int) -> None:
             rest = rest[os.write(fd, rest):]
 
 
+def encode_snapshot(snap: dict[str, Any]) -> dict[str, Any]:
+    """A :meth:`StochasticMap.snapshot` as msgpack-able values (edges as raw float64)."""
+    return {**{k: v for k, v in snap.items() if k != "components"},
+            "components": [{**{k: v for k, v in c.items() if k != "edges"},
+                            "edges": wire.pack_array(c["edges"])}
+                           for c in snap["components"]]}
+
+
+def decode_snapshot(obj: Any, n_samples: int) -> dict[str, Any]:
+    """Inverse of :func:`encode_snapshot`, checked (shapes, finiteness).
+
+    Raises
+    ------
+    McsmError
+        If the record is not a snapshot of a map with ``n_samples`` samples.
+    """
+    if not isinstance(obj, dict) or not isinstance(obj.get("components"), list):
+        raise McsmError("a snapshot record without components")
+    comps = []
+    for c in obj["components"]:
+        if not isinstance(c, dict):
+            raise McsmError("a snapshot component is not a map")
+        edges = wire.unpack_array(c.get("edges"), "edges", 3, max_elems=1 << 27)
+        if edges.shape[1:] != (n_samples, 7):
+            raise McsmError(f"snapshot edges {edges.shape} do not fit N = {n_samples}")
+        comps.append({**c, "edges": edges})
+    return {**obj, "components": comps}
+
+
 class Recorder:
     """Append-only MCAP writer; every record is flushed to the OS before the call returns.
 
@@ -414,6 +447,17 @@ class Recorder:
                                      "reason": reason}, time.time_ns(), seq)
         self._flush(self._fsync)
 
+
+    def snapshot(self, state: MapState) -> None:
+        """Record ``state``'s whole map (versioned, with its digest and seq) and flush it:
+        ``--restore`` starts from the latest one plus the inputs after it."""
+        now = time.time_ns()
+        self._add(TOPIC_SNAPSHOT, {"map": state.name, "seq": state.seq,
+                                   "digest": state.digest(), "format": SNAPSHOT_FORMAT,
+                                   "verdicts": dict(state.verdicts),
+                                   "state": encode_snapshot(state.map.snapshot())}, now,
+                  state.seq)
+        self._flush(self._fsync)
     def close(self) -> None:
         """Write the summary and footer and close the file (idempotent)."""
         if self.closed:
@@ -678,6 +722,8 @@ class ReplayReport:
     ops: Counter[str] = field(default_factory=Counter)
     checkpoints: list[Checkpoint] = field(default_factory=list)
     checkpoints_ok: int = 0
+    snapshots_loaded: int = 0
+    n_skipped: int = 0  # inputs before a snapshot replay started from (ids remembered only)
     #: checkpoints of maps recorded by another arithmetic version: not comparable, not checked
     checkpoints_other_arithmetic: int = 0
     divergence: str | None = None
@@ -709,8 +755,13 @@ class ReplayReport:
 def replay(path: str | os.PathLike[str], *, sink: Recorder | None = None,
            progress: Callable[[int, int], None] | None = None,
            lru_size: int = DEFAULT_LRU, server_id: str = "",
-           stop_after: int | None = None) -> ReplayReport:
-    """Rebuild every map of a recording and check its digests at every checkpoint.
+           stop_after: int | None = None, from_snapshot: bool = False) -> ReplayReport:
+    """Rebuild every map of a recording and check its digests at every checkpoint and
+    snapshot.
+
+    With ``from_snapshot`` (``mcsm serve --restore``), each map starts from its latest
+    snapshot in the file (verified by its digest) and only the inputs after it are applied;
+    a sink then receives that snapshot and the tail, so the new file replays on its own.
 
     A map recorded by another arithmetic version (:data:`mcsm.core.ARITHMETIC_VERSION`) is
     rebuilt with this core's arithmetic, and its checkpoints are not compared (they cannot
@@ -737,6 +788,11 @@ def replay(path: str | os.PathLike[str], *, sink: Recorder | None = None,
     """
     t0 = time.perf_counter()
     rep = ReplayReport(path=str(path))
+    start: dict[str, int] = {}  # map -> seq of the snapshot to start from
+    if from_snapshot:
+        for item in RecordingReader(path):
+            if item.topic == TOPIC_SNAPSHOT and isinstance(item.data.get("map"), str):
+                start[item.data["map"]] = int(item.data.get("seq", 0))
     reader = RecordingReader(path, progress)
     for item in reader:
         if stop_after is not None and rep.n_inputs >= stop_after:
@@ -775,6 +831,38 @@ def replay(path: str | os.PathLike[str], *, sink: Recorder | None = None,
         if st_or_none is None:
             raise RecordingError(str(path), f"record for map {name!r} before its config")
         st = st_or_none
+        if item.topic == TOPIC_SNAPSHOT:
+            seq = int(d["seq"])
+            s0 = start.get(name)
+            if s0 is not None and seq < s0:
+                continue  # an earlier snapshot than the one this replay starts from
+            if seq == s0 or st.seq == 0 < seq:
+                # start here: the inputs before were skipped (or are not in this file)
+                try:
+                    snap = decode_snapshot(d["state"], st.n_samples)
+                    st.restore(seq, StochasticMap.from_snapshot(snap), d.get("verdicts", {}))
+                except (McsmError, KeyError, TypeError, ValueError) as exc:
+                    raise RecordingError(str(path), f"unreadable snapshot of map {name!r} "
+                                         f"at seq {seq}: {exc}") from None
+                rep.snapshots_loaded += 1
+            elif seq != st.seq:
+                rep.divergence = (f"map {name!r}: snapshot at seq {seq} but replay is at "
+                                  f"seq {st.seq}")
+                break
+            if name not in rep.other_arithmetic:
+                got = st.digest()
+                if got != str(d["digest"]):
+                    rep.divergence = (f"map {name!r}: snapshot digest differs at seq {seq} "
+                                      f"(recorded {str(d['digest'])[:16]}..., replayed "
+                                      f"{got[:16]}...)")
+                    break
+                rep.checkpoints_ok += 1
+            rep.checkpoints.append(Checkpoint(name, seq, str(d["digest"]), "snapshot"))
+            if sink is not None:
+                sink.snapshot(st)
+            continue
+        if item.topic == TOPIC_CHECKPOINT and name in start and st.seq < start[name]:
+            continue  # before the snapshot this replay starts from is loaded
         if item.topic == TOPIC_CHECKPOINT:
             cp = Checkpoint(name, int(d["seq"]), str(d["digest"]), str(d.get("reason", "")))
             rep.checkpoints.append(cp)
@@ -801,6 +889,15 @@ def replay(path: str | os.PathLike[str], *, sink: Recorder | None = None,
             log.warning("%s: ignoring records on unknown topic %s", path, item.topic)
             continue
         seq = int(d["seq"])
+        if seq <= start.get(name, -1):  # before the snapshot: remember the id, skip the work
+            try:
+                req = decode_input(op, bytes(d["request"]), st.n_samples)
+            except McsmError as exc:
+                rep.divergence = f"map {name!r}: input seq {seq} ({op}) does not decode: {exc}"
+                break
+            st.remember(op, req, seq, int(d["recv_ns"]))
+            rep.n_skipped += 1
+            continue
         if seq != st.seq + 1:
             rep.divergence = (f"map {name!r}: input seq {seq} follows seq {st.seq} "
                               "(gap or reordering)")

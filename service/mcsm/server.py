@@ -78,6 +78,9 @@ class ServerOptions:
     fsync: bool = False
     snapshot_every: int = DEFAULT_SNAPSHOT_EVERY
     snapshots_kept: int = DEFAULT_SNAPSHOTS_KEPT
+    disk_snapshot_every: int = 1000
+    """Record the whole state every K operations of a map (0: never); --restore starts from
+    the latest."""
 
 
 @dataclass
@@ -135,7 +138,7 @@ class Server:
                                      "(the restored server writes a new, self-contained file)")
             self.recorder = Recorder(o.record, fsync=o.fsync)
         if o.restore is not None:
-            rep = replay(o.restore, sink=self.recorder, progress=self._progress,
+            rep = replay(o.restore, sink=self.recorder, from_snapshot=True, progress=self._progress,
                          lru_size=o.lru_size, server_id=self.server_id)
             if rep.divergence is not None:
                 if self.recorder is not None:  # it only holds a copy of the old file's prefix
@@ -364,6 +367,9 @@ class Server:
                 if ack.seq % self.opts.checkpoint_every == 0:
                     digest = st.digest()
                     self.recorder.checkpoint(st.name, ack.seq, digest, "periodic")
+                k = self.opts.disk_snapshot_every
+                if k > 0 and ack.seq % k == 0:
+                    self.recorder.snapshot(st)
         except (OSError, ValueError) as exc:
             # The map holds an input the file does not: stop rather than acknowledge it.
             log.critical("recording failed at seq %d of map %r: %s; stopping", ack.seq,

@@ -147,6 +147,22 @@ class MapState:
         self.last_changed = changed
         return wire.Ack(req.request_id, self.seq + 1, op, op, None, verdict=target.verdict)
 
+    def restore(self, seq: int, smap: StochasticMap, verdicts: dict[str, int]) -> None:
+        """Continue from a recorded snapshot: the map as it was after operation ``seq``."""
+        smap.threads = self.map.threads
+        self.map, self.seq = smap, int(seq)
+        self.verdicts = Counter({str(k): int(v) for k, v in verdicts.items()})
+        self.history.start(smap, self.seq)
+        self._digest = None
+
+    def remember(self, op: str, req: Any, seq: int, time_ns: int) -> None:
+        """Remember the id of an input applied before a snapshot replay started from (so a
+        retry of it is not applied twice); its ack is not known, only its seq and op."""
+        ack = wire.Ack(req.request_id, int(seq), op, "restored", None)
+        self._acks.pop(req.request_id, None)
+        self._acks[req.request_id] = (ack, wire.request_fingerprint(op, req), int(time_ns))
+        self._forget(int(time_ns))
+
     def verdict_of(self, request_id: str) -> wire.Ack:
         """The ack (with its current verdict) of a remembered request id.
 

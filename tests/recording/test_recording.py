@@ -16,6 +16,7 @@ from mcsm.recording import (
     INPUT_TOPICS,
     TOPIC_CHECKPOINT,
     TOPIC_CONFIG,
+    TOPIC_SNAPSHOT,
     Recorder,
     RecordingError,
     RecordingReader,
@@ -69,7 +70,8 @@ def test_layout_schemas_and_readers_agree(tmp_path: Path) -> None:
         summary = reader.get_summary()
         assert summary is not None
         topics = {c.topic: c for c in summary.channels.values()}
-        assert set(topics) == {TOPIC_CONFIG, TOPIC_CHECKPOINT, *INPUT_TOPICS.values()}
+        assert set(topics) == {TOPIC_CONFIG, TOPIC_CHECKPOINT, TOPIC_SNAPSHOT,
+                               *INPUT_TOPICS.values()}
         for c in topics.values():
             assert c.message_encoding == "msgpack"
             sch = summary.schemas[c.schema_id]
