@@ -126,6 +126,11 @@ def build_parser() -> argparse.ArgumentParser:
         s.add_argument("--json", action="store_true")
         _add_common(s)
 
+    s = sub.add_parser("servers", help="every map with a live server, its server id and role "
+                       "(all servers reachable from here, e.g. behind a router)")
+    s.add_argument("--json", action="store_true")
+    _add_common(s)
+
     s = sub.add_parser("verdict", help="what the map did with a past request (gate verdict)")
     s.add_argument("request_id")
     s.add_argument("--json", action="store_true")
@@ -397,6 +402,22 @@ def cmd_retract(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_servers(args: argparse.Namespace) -> int:
+    """``servers``: the maps that live servers serve (liveliness tokens), with server ids."""
+    rows: list[dict[str, str]] = []
+    with _client(args) as c:
+        for reply in c.session.liveliness().get(f"{args.prefix}/*/alive/*", timeout=2.0):
+            if reply.ok is None:
+                continue
+            parts = str(reply.ok.key_expr).split("/")
+            rows.append({"map": parts[-3], "server": parts[-1], "role": "primary"})
+    rows.sort(key=lambda r: (r["map"], r["server"]))
+    text = "\n".join(f"{r['map']:24s} {r['server']:34s} {r['role']}" for r in rows) \
+        or "no live server"
+    _print(args, {"servers": rows}, text)
+    return EXIT_OK
+
+
 def cmd_verdict(args: argparse.Namespace) -> int:
     """``verdict``: the current verdict of a past request."""
     with _client(args) as c:
@@ -592,6 +613,7 @@ def cmd_multirobot(args: argparse.Namespace) -> int:
 
 COMMANDS = {"info": cmd_info, "update": cmd_update, "query": cmd_query, "remove": cmd_remove,
             "retract": cmd_retract, "reinstate": cmd_retract, "verdict": cmd_verdict,
+            "servers": cmd_servers,
             "watch": cmd_watch, "play": cmd_play, "sim": cmd_sim, "multirobot": cmd_multirobot}
 
 

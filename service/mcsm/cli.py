@@ -70,6 +70,18 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("serve", help="run the map server (embedded Zenoh peer)")
     add_connection_args(s, role="server")
+    s.add_argument("--connect", action="append", default=None, metavar="ENDPOINT",
+                   help="join a Zenoh router (repeatable; mcsm router): clients then find "
+                        "this server's maps through the router by key alone; without "
+                        "--listen the server listens nowhere itself")
+
+    rt = sub.add_parser("router", help="run a Zenoh router that servers and clients join "
+                        "(several servers, one key space)")
+    rt.add_argument("--listen", required=True, metavar="ENDPOINT",
+                    help="endpoint to listen on, e.g. tcp/0.0.0.0:7447")
+    rt.add_argument("--zenoh-config", default=None, metavar="FILE",
+                    help="Zenoh JSON5 config (TLS, access control); its mode becomes router")
+    rt.add_argument("--log-level", default="INFO")
     s.add_argument("--samples", type=int, default=1000, metavar="N",
                    help="samples per AT for new maps (default 1000)")
     s.add_argument("--method", choices=("joint", "paper"), default="joint",
@@ -165,6 +177,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "serve":
             return serve(args)
+        if args.command == "router":
+            return router_cmd(args)
         if args.command == "replay":
             return replay_cmd(args)
         if args.command == "recover":
@@ -216,6 +230,35 @@ def _inflation(text: str) -> float | str:
             f"expected a number in [1, 2) or 'adaptive', got {text!r}") from None
 
 
+def router_cmd(args: argparse.Namespace) -> int:
+    """``mcsm router``: a Zenoh router (no map of its own) until SIGINT or SIGTERM."""
+    import zenoh
+
+    from mcsm.connect import router_config
+
+    logging.basicConfig(level=getattr(logging, str(args.log_level).upper(), logging.INFO),
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+                        stream=sys.stderr)
+    try:
+        conf = router_config(args.listen, args.zenoh_config)
+        session = zenoh.open(conf)
+    except (McsmError, zenoh.ZError, OSError) as exc:
+        print(f"mcsm router: {exc}", file=sys.stderr)
+        return 2
+    stop = threading.Event()
+    old = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT,
+                                                                       signal.SIGTERM)}
+    print(f"routing on {args.listen} (zid {session.zid()})", flush=True)
+    try:
+        while not stop.wait(0.5):
+            pass
+    finally:
+        for sig, h in old.items():
+            signal.signal(sig, h)
+        session.close()
+    return 0
+
+
 def serve(args: argparse.Namespace) -> int:
     import zenoh
 
@@ -250,7 +293,7 @@ def serve(args: argparse.Namespace) -> int:
     try:
         for name in opts.maps:
             wire.map_keys(name, opts.prefix)
-        conf = server_config(args.listen, args.zenoh_config)
+        conf = server_config(args.listen, args.zenoh_config, connect=args.connect)
     except (McsmError, zenoh.ZError, OSError) as exc:
         print(f"mcsm serve: {exc}", file=sys.stderr)
         return 2
@@ -279,7 +322,8 @@ def serve(args: argparse.Namespace) -> int:
         if args.restore:
             sys.stderr.write("\n")
         log.info("recording to %s", opts.record)
-        print(f"listening on {' '.join(listen_endpoints(conf))}", flush=True)
+        via = f" (joined {' '.join(args.connect)})" if args.connect else ""
+        print(f"listening on {' '.join(listen_endpoints(conf)) or '-'}{via}", flush=True)
         while not stop.wait(0.5):
             if server.failed.is_set():
                 log.critical("stopping after a recording failure")

@@ -225,13 +225,17 @@ def client_config(connect: str | None = None, zenoh_config: ZenohConfigLike = No
 
 
 def server_config(listen: str | None = None, zenoh_config: ZenohConfigLike = None,
-                  max_message_bytes: int = MAX_MESSAGE_BYTES) -> zenoh.Config:
+                  max_message_bytes: int = MAX_MESSAGE_BYTES,
+                  connect: list[str] | None = None) -> zenoh.Config:
     """Zenoh config of the server's embedded peer.
 
     Defaults: mode peer, listen on ``listen`` (``tcp/127.0.0.1:7457``), connect nowhere,
     multicast and gossip scouting off, shared memory off, batching off,
-    ``transport/link/rx/max_message_size`` = ``max_message_bytes``. A ``zenoh_config``
-    replaces them all; ``listen``, when given, is applied on top.
+    ``transport/link/rx/max_message_size`` = ``max_message_bytes``. With ``connect``
+    (routers, ``mcsm serve --connect``) and no ``listen``, the server is a Zenoh *client* of
+    the routers (a peer would expect direct links to the other peers) and listens nowhere:
+    clients reach it through the routers. A ``zenoh_config`` replaces
+    the defaults; ``listen`` and ``connect``, when given, are applied on top.
     """
     c = _load(zenoh_config)
     if c is None:
@@ -242,9 +246,34 @@ def server_config(listen: str | None = None, zenoh_config: ZenohConfigLike = Non
         c.insert_json5("transport/shared_memory/enabled", "false")
         c.insert_json5("transport/link/tx/queue/batching/enabled", "false")
         c.insert_json5("transport/link/rx/max_message_size", str(int(max_message_bytes)))
-        listen = listen or DEFAULT_ENDPOINT
+        if not connect:
+            listen = listen or DEFAULT_ENDPOINT
+        elif not listen:  # reached through the routers only: a client of theirs
+            c.insert_json5("mode", '"client"')
+            c.insert_json5("listen/endpoints", "[]")
+    if connect:
+        c.insert_json5("connect/endpoints",
+                       json.dumps([check_endpoint(e, "--connect") for e in connect]))
     if listen:
         c.insert_json5("listen/endpoints", json.dumps([check_endpoint(listen, "--listen")]))
+    return c
+
+
+def router_config(listen: str, zenoh_config: ZenohConfigLike = None,
+                  max_message_bytes: int = MAX_MESSAGE_BYTES) -> zenoh.Config:
+    """Zenoh config of ``mcsm router``: a session in router mode listening on ``listen``,
+    scouting, shared memory and batching off, messages capped like the server's. A
+    ``zenoh_config`` replaces the defaults (its mode is set to router)."""
+    c = _load(zenoh_config)
+    if c is None:
+        c = zenoh.Config()
+        c.insert_json5("connect/endpoints", "[]")
+        _no_scouting(c)
+        c.insert_json5("transport/shared_memory/enabled", "false")
+        c.insert_json5("transport/link/tx/queue/batching/enabled", "false")
+        c.insert_json5("transport/link/rx/max_message_size", str(int(max_message_bytes)))
+    c.insert_json5("mode", '"router"')
+    c.insert_json5("listen/endpoints", json.dumps([check_endpoint(listen, "--listen")]))
     return c
 
 

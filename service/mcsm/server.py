@@ -132,6 +132,7 @@ class Server:
         o = self.opts
         for name in o.maps:
             wire.map_keys(name, o.prefix)  # check names before doing any work
+        self.check_not_served(list(o.maps))
         if o.record is not None:
             if o.restore is not None and Path(o.record).resolve() == Path(o.restore).resolve():
                 raise RecordingError(str(o.record), "--record must differ from --restore "
@@ -168,10 +169,31 @@ class Server:
             self.states[name] = st
             if self.recorder is not None:
                 self.recorder.config(st, o.checkpoint_every, server_id=self.server_id)
+        self.check_not_served([n for n in self.states if n not in o.maps])  # restored maps
         self._worker = threading.Thread(target=self._run, name="mcsm-worker", daemon=True)
         self._worker.start()
         for name, st in self.states.items():
             self._declare(name, st)
+
+    def check_not_served(self, names: list[str], timeout_s: float = 2.0) -> None:
+        """Refuse maps another live server already serves (its liveliness token is seen):
+        two primaries of one map would fork it.
+
+        Raises
+        ------
+        McsmError
+            Naming the map and the other server.
+        """
+        for name in names:
+            k = wire.map_keys(name, self.opts.prefix)
+            for reply in self.session.liveliness().get(k.alive_any, timeout=timeout_s):
+                if reply.ok is None:
+                    continue
+                other = str(reply.ok.key_expr).rsplit("/", 1)[-1]
+                if other != self.server_id:
+                    raise McsmError(f"map {name!r} is already served by server {other} "
+                                    f"(liveliness token {reply.ok.key_expr}): refusing to "
+                                    "serve it a second time")
 
     def _declare(self, name: str, st: MapState) -> None:
         k = wire.map_keys(name, self.opts.prefix)

@@ -55,7 +55,8 @@ def start_daemon(workdir: Path, *args: str, record: Path | None = None,
     """Run ``python -m mcsm.cli serve`` and wait (with a deadline) for ``listening on``.
 
     With ``endpoint`` given, no ``--listen`` is passed (the endpoint comes from a config file
-    in ``args``) and the ``listening on`` line must name it. ``listen_on`` reuses a known
+    in ``args``) and the ``listening on`` line must name it; ``endpoint="-"``: the server
+    joins a router (``--connect`` in ``args``) and listens nowhere. ``listen_on`` reuses a known
     endpoint (a restart on the same port); ``env`` adds environment variables.
     """
     ep = endpoint or listen_on or f"tcp/127.0.0.1:{free_port()}"
@@ -87,7 +88,7 @@ def start_daemon(workdir: Path, *args: str, record: Path | None = None,
                                      ) from None
             continue
         if line.startswith("listening on "):
-            assert line.split()[-1] == ep
+            assert endpoint == "-" or line.split()[-1] == ep  # "-": joined a router only
             return d
     proc.kill()
     proc.wait(timeout=10)
