@@ -59,17 +59,7 @@ def copy_pass_s(edges: np.ndarray, repeats: int = 3) -> float:
 
 def old_copy(m: StochasticMap, **opts: Any) -> old.StochasticMap:
     """The old implementation holding exactly ``m``'s state."""
-    r = old.StochasticMap(m.n_samples, **opts)
-    snap = m.snapshot()
-    r._next_id = snap["next_id"]
-    r._order = {f: None for f in snap["order"]}
-    for c in snap["components"]:
-        comp = old._Component(list(c["frames"]), np.array(c["is_point"], dtype=bool),
-                              np.array(c["edges"]))
-        r._comps[c["id"]] = comp
-        for f in comp.frames:
-            r._where[f] = c["id"]
-    return r
+    return old.from_snapshot(m.snapshot(), **opts)
 
 
 def timed_updates(m: Any, frames: list[str], rng: np.random.Generator, count: int,

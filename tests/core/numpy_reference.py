@@ -841,3 +841,21 @@ def _merge_points(p_g: Array, p_x: Array) -> Array:
 
 
 __all__ = ["StochasticMap", "UpdateResult", "RemoveResult", "Submap", "check_frame_name"]
+
+
+def from_snapshot(snap: dict[str, Any], **opts: Any) -> StochasticMap:
+    """A reference map holding exactly the state of ``mcsm.StochasticMap.snapshot()``."""
+    n = int(snap["components"][0]["edges"].shape[1]) if snap["components"] else \
+        int(snap["options"]["n_samples"])
+    r = StochasticMap(n, **opts)
+    r._next_id = snap["next_id"]
+    r._order = {f: None for f in snap["order"]}
+    r._nis_avg = snap["nis_avg"]
+    for c in snap["components"]:
+        comp = _Component(list(c["frames"]), np.array(c["is_point"], dtype=bool),
+                          np.array(c["edges"]))
+        r._comps[c["id"]] = comp
+        for f in comp.frames:
+            r._where[f] = c["id"]
+    return r
+

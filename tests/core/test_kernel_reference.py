@@ -20,18 +20,7 @@ N = 64
 
 def _reference_of(m: StochasticMap, opts: dict[str, object]) -> ref.StochasticMap:
     """A reference map holding exactly ``m``'s state."""
-    r = ref.StochasticMap(m.n_samples, threads=1, **opts)  # type: ignore[arg-type]
-    snap = m.snapshot()
-    r._next_id = snap["next_id"]
-    r._order = {f: None for f in snap["order"]}
-    r._nis_avg = snap["nis_avg"]
-    for c in snap["components"]:
-        comp = ref._Component(list(c["frames"]), np.array(c["is_point"], dtype=bool),
-                              np.array(c["edges"]))
-        r._comps[c["id"]] = comp
-        for f in comp.frames:
-            r._where[f] = c["id"]
-    return r
+    return ref.from_snapshot(m.snapshot(), threads=1, **opts)
 
 
 def _run(opts: dict[str, object], n_updates: int, seed: int) -> tuple[int, float]:
