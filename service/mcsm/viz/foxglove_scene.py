@@ -218,6 +218,9 @@ class _SnapshotSink:
     def checkpoint(self, *_args: Any, **_kw: Any) -> None:
         return None
 
+    def snapshot(self, *_args: Any, **_kw: Any) -> None:
+        return None  # a state snapshot in the file: replay has verified it; nothing to draw
+
     def finish(self) -> None:
         if self.state is not None and self.last_emitted != self.last_seq:
             self.emit(self.state.map, self.last_seq, self.last_time_ns)
