@@ -148,12 +148,16 @@ class Ledger:
 
 
 # --------------------------------------------------------------------------------- deferral
-def cycle_nis(smap: StochasticMap, first: Record, second: Record) -> tuple[float, int]:
-    """NIS and dof of the cycle ``X1 ⊕ Q(b1→b2) ⊕ X2⁻¹ ⊕ Q(a2→a1)`` against the identity.
+def cycle_nis(smap: StochasticMap, first: Record, second: Record
+              ) -> tuple[float, int, float]:
+    """NIS and dof of the cycle ``X1 ⊕ Q(b1→b2) ⊕ X2⁻¹ ⊕ Q(a2→a1)`` against the identity,
+    and how loose the map's part of the cycle is.
 
     ``Q`` are the map's joint samples (row i of both queries is one draw of the map), ``X1``,
     ``X2`` the two closures' samples; the covariance is the cycle's own sample covariance,
-    over its live dimensions (3 planar, 6 in 3-D).
+    over its live dimensions (3 planar, 6 in 3-D). ``looseness`` is
+    ``(tr C(Q_a) + tr C(Q_b)) / (tr C(X1) + tr C(X2))``: a cycle through a long stretch of
+    odometry (two closures to different passes) is loose and tests almost nothing.
     """
     q_b = smap.query(first.b, second.b)
     q_a = smap.query(second.a, first.a)
@@ -163,7 +167,10 @@ def cycle_nis(smap: StochasticMap, first: Record, second: Record) -> tuple[float
     w, v = np.linalg.eigh(0.5 * (cov + cov.T))
     live = w > 1e-9 * max(float(w.max()), 1e-300)
     u = v[:, live].T @ e
-    return float(np.sum(u * u / w[live])), int(live.sum())
+    tr_map = float(np.trace(mean_and_cov(q_a)[1]) + np.trace(mean_and_cov(q_b)[1]))
+    tr_obs = float(np.trace(mean_and_cov(first.samples)[1])
+                   + np.trace(mean_and_cov(second.samples)[1]))
+    return float(np.sum(u * u / w[live])), int(live.sum()), tr_map / max(tr_obs, 1e-300)
 
 
 class DeferringMap:
@@ -177,10 +184,15 @@ class DeferringMap:
     expiry : inputs after which a pending closure is released (``on_expiry``)
     gate : chi-square quantile of the cycle test (default: the map's gate, or 0.99)
     on_expiry : ``"gate"`` (apply it alone, through the map's gate) or ``"reject"``
+    max_looseness : a closure is a partner of the held one only when the map's part of their
+        cycle is tight (:func:`cycle_nis` looseness at most this); any other closure goes
+        through the gate as usual while the held one keeps waiting (and, released later, meets
+        the gate of a map those closures have corrected)
     """
 
     def __init__(self, ledger: Ledger, *, revisit_gap: int = 25, expiry: int = 25,
-                 gate: float | None = None, on_expiry: str = "gate") -> None:
+                 gate: float | None = None, on_expiry: str = "gate",
+                 max_looseness: float = 4.0) -> None:
         if on_expiry not in ("gate", "reject"):
             raise ValueError("on_expiry must be 'gate' or 'reject'")
         self.ledger = ledger
@@ -188,6 +200,7 @@ class DeferringMap:
         self.expiry = expiry
         self.gate = gate if gate is not None else (ledger.map.gate or 0.99)
         self.on_expiry = on_expiry
+        self.max_looseness = max_looseness
         self.pending: tuple[Record, int] | None = None  # the held closure and its input count
         self.outcomes: dict[int, Outcome] = {}
         self._inputs = 0
@@ -216,7 +229,9 @@ class DeferringMap:
             self.pending = None
             out.append(self._reject(held, "deferred: its frames were removed"))
             return out + [self._hold(record)]
-        nis, dof = cycle_nis(smap, held, record)
+        nis, dof, loose = cycle_nis(smap, held, record)
+        if loose > self.max_looseness:
+            return out + [self._apply(record, counts=False)]
         threshold = chi2_quantile(self.gate, dof) if dof else float("inf")
         if nis <= threshold:
             self.pending = None
@@ -251,9 +266,9 @@ class DeferringMap:
         self.outcomes[record.request_id] = o
         return o
 
-    def _apply(self, record: Record) -> Outcome:
+    def _apply(self, record: Record, counts: bool = True) -> Outcome:
         o = self.ledger.apply(record)
-        if o.kind == "loop_closure":
+        if o.kind == "loop_closure" and counts:
             self._last_closure = self._inputs
         self.outcomes[record.request_id] = o
         return o

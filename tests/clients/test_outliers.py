@@ -87,10 +87,13 @@ def test_cycle_test_separates_agreeing_and_disagreeing_pairs() -> None:
     for r in recs[:loops[1]]:
         m.update(r.a, r.b, r.samples)
     first, second = recs[loops[0]], recs[loops[1]]
-    nis, dof = cycle_nis(m, first, second)
-    assert dof == 3 and nis < 11.34
-    bad, dof = cycle_nis(m, _wrong(first, np.random.default_rng(1)), second)
+    nis, dof, loose = cycle_nis(m, first, second)
+    assert dof == 3 and nis < 11.34 and loose < 4.0
+    bad, dof, _ = cycle_nis(m, _wrong(first, np.random.default_rng(1)), second)
     assert dof == 3 and bad > 10 * 11.34
+    # a partner whose old end is half a lap away: the map's part of the cycle is looser
+    far = Record(second.request_id, f"p{int(first.a[1:]) + 20}", second.b, second.samples)
+    assert cycle_nis(m, first, far)[2] > 2 * loose
 
 
 def test_deferral_holds_the_first_closure_and_drops_it_when_the_next_disagrees() -> None:
