@@ -732,7 +732,8 @@ def main(argv: list[str] | None = None) -> None:
             r.case = r.case.replace("random 0 %", "clean")
     lines = ["# Wrong loop closures: the map, its gate, deferral and auditor against GTSAM",
              "", f"`experiments/outliers.py {' '.join(argv or sys.argv[1:])}` "
-             f"(N = {args.n_samples}, seeds {seeds}, poses {[sizes[g] for g in graphs]}).", "",
+             f"(pose graphs N = {args.n_samples}, landmarks N = 500; seeds {seeds}; poses "
+             f"{[sizes[g] for g in graphs]}).", "",
              *table(rows), "", "## Targets of issue 16 (pose graphs with wrong closures)", "",
              *targets(rows)]
     if not args.no_retraction:
