@@ -31,6 +31,8 @@ in digest to a map that never had the input, and snapshot restore + tail against
 Usage::
 
     .venv/bin/python experiments/outliers.py            # ~10 min: N = 200, 500-700 poses
+    .venv/bin/python experiments/outliers.py --graphs planar 3d long drift --seeds 9 \
+        --no-landmarks --no-retraction                  # the committed tables, per seed
     .venv/bin/python experiments/outliers.py --full     # 1000 poses, drift, more seeds
     .venv/bin/python experiments/outliers.py --graphs planar --kinds burst --no-landmarks
 
@@ -701,7 +703,7 @@ def main(argv: list[str] | None = None) -> None:
         print("\n".join(targets([r for p in args.summarize for r in parse_table(p)])))
         return
     graphs = args.graphs or (["planar", "3d", "long", "drift"] if args.full
-                             else ["planar", "3d", "long", "drift"])
+                             else ["planar", "3d", "long"])
     if graphs == ["none"]:
         graphs = []
     seeds = args.seeds or ([8, 9, 10] if args.full else [8])
