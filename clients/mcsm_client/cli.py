@@ -120,11 +120,27 @@ def build_parser() -> argparse.ArgumentParser:
 
     for name, text in (("retract", "take back an update by its request id (the map becomes "
                                    "what it would be without it)"),
-                       ("reinstate", "put a retracted update back")):
+                       ("reinstate", "put back a retracted update, or one the gate rejected (as trusted)")):
         s = sub.add_parser(name, help=text)
         s.add_argument("request_id", help="the update's request id (from its ack or events)")
         s.add_argument("--json", action="store_true")
         _add_common(s)
+
+    s = sub.add_parser("audit", help="run GTSAM's GNC over a map's recorded inputs and retract "
+                       "or reinstate where it disagrees with the map (eval extra)",
+                       description="Read the recorded inputs of a map (the server's MCAP "
+                                   "file), replay it for each update's current verdict, run "
+                                   "the GNC auditor (mcsm_client.audit, hysteresis: marginal "
+                                   "closures keep their state) and print its decisions; with "
+                                   "--apply, ask the server to retract or reinstate them "
+                                   "(admin rights under the shipped access control).")
+    s.add_argument("recording", type=Path, help="the map server's recording (.mcap)")
+    s.add_argument("--apply", action="store_true",
+                   help="send the decisions to the server (default: print them only)")
+    s.add_argument("--gate", type=float, default=0.99,
+                   help="chi-square quantile the residuals are judged against (default 0.99)")
+    s.add_argument("--json", action="store_true")
+    _add_common(s)
 
     s = sub.add_parser("servers", help="every map with a live server, its server id and role "
                        "(all servers reachable from here, e.g. behind a router)")
@@ -402,6 +418,64 @@ def cmd_retract(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_audit(args: argparse.Namespace) -> int:
+    """``audit``: GNC over the recorded inputs; print (and with --apply send) its decisions."""
+    from mcsm.recording import TOPIC_OPS, RecordingReader, decode_input, replay
+
+    from mcsm_client.audit import AuditInput, Auditor
+
+    if not args.recording.is_file():
+        raise UsageError(f"no such recording: {args.recording}")
+    try:
+        import gtsam  # noqa: F401
+    except ImportError:
+        raise UsageError("audit needs gtsam: pip install 'mcsm[eval]'") from None
+    rep = replay(args.recording)
+    st = rep.states.get(args.map)
+    if st is None:
+        raise UsageError(f"the recording has no map {args.map!r} "
+                         f"(it has {', '.join(rep.states) or 'none'})")
+    inputs: list[AuditInput] = []
+    ids: list[str] = []
+    for item in RecordingReader(args.recording):
+        d = item.data
+        if d.get("map") != args.map or TOPIC_OPS.get(item.topic) != "update":
+            continue
+        req = decode_input("update", bytes(d["request"]), st.n_samples)
+        if req.samples.shape[1] != 7:
+            continue  # the auditor takes full-frame constraints only
+        try:
+            verdict = st.verdict_of(req.request_id).verdict
+        except McsmError:
+            verdict = None  # forgotten (older than the id memory): as applied
+        ids.append(req.request_id)
+        inputs.append(AuditInput(len(ids) - 1, req.a, req.b, req.samples,
+                                 verdict.status if verdict is not None else "accepted"))
+    decisions = Auditor(gate=args.gate).decide(inputs) if inputs else []
+    rows = [{"request_id": ids[dd.request_id], "action": dd.action, "weight": dd.weight,
+             "residual_nis": dd.residual_nis, "threshold": dd.threshold, "dof": dd.dof}
+            for dd in decisions]
+    if args.apply and rows:
+        with _client(args) as c:
+            for r in rows:  # each one re-gates the later inputs: a later decision may be moot
+                fn = c.retract if r["action"] == "retract" else c.reinstate
+                try:
+                    ack = fn(str(r["request_id"]))
+                    r["verdict"] = ack.verdict.status if ack.verdict is not None else ""
+                except McsmError as exc:
+                    if isinstance(exc, (NoServer, NoPermittedServer, Timeout)):
+                        raise
+                    r["verdict"] = f"refused: {exc}"
+    text = "\n".join(f"{r['action']:9s} {r['request_id']}  GNC weight {r['weight']:.2f}, "
+                     f"residual {r['residual_nis']:.3g} (threshold {r['threshold']:.3g})"
+                     + (f" -> {r['verdict']}" if "verdict" in r else "") for r in rows)
+    _print(args, {"inputs": len(inputs), "decisions": rows},
+           f"{len(inputs)} full-frame inputs audited; {len(rows)} decision(s)"
+           + (" (not sent: add --apply)" if rows and not args.apply else "")
+           + ("\n" + text if text else ""))
+    return EXIT_OK
+
+
 def cmd_servers(args: argparse.Namespace) -> int:
     """``servers``: the maps that live servers serve (liveliness tokens), with server ids."""
     rows: list[dict[str, str]] = []
@@ -613,7 +687,7 @@ def cmd_multirobot(args: argparse.Namespace) -> int:
 
 COMMANDS = {"info": cmd_info, "update": cmd_update, "query": cmd_query, "remove": cmd_remove,
             "retract": cmd_retract, "reinstate": cmd_retract, "verdict": cmd_verdict,
-            "servers": cmd_servers,
+            "servers": cmd_servers, "audit": cmd_audit,
             "watch": cmd_watch, "play": cmd_play, "sim": cmd_sim, "multirobot": cmd_multirobot}
 
 

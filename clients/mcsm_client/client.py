@@ -364,7 +364,8 @@ class MapClient:
 
     def reinstate(self, target: str, *, request_id: str | None = None,
                   timeout_s: float | None = None) -> wire.Ack:
-        """Put a retracted update back (as if it had always been applied, gate bypassed)."""
+        """Put back a retracted update, or one the gate rejected (as if it had always been
+        applied, gate bypassed)."""
         rid = request_id or self.new_request_id()
         payload = wire.encode_retract(rid, target, sender=self.sender)
         return self._call(self.keys.reinstate, payload, self._decode_ack,

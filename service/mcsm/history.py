@@ -89,7 +89,8 @@ class History:
         return self.snapshots[0][0] if self.snapshots else 0
 
     def target(self, request_id: str, retract: bool) -> Logged:
-        """The window's update ``request_id``, checked for a retraction or a reinstatement.
+        """The window's update ``request_id``, checked for a retraction or a reinstatement (of
+        a retracted update, or of one the gate rejected: it goes in as trusted).
 
         Raises
         ------
@@ -106,8 +107,9 @@ class History:
                                    "retracted or reinstated")
         if retract and e.retracted:
             raise InvalidOperation(f"request {request_id!r} is already retracted")
-        if not retract and not e.retracted:
-            raise InvalidOperation(f"request {request_id!r} is not retracted")
+        rejected = e.verdict is not None and e.verdict.status == "rejected"
+        if not retract and not (e.retracted or rejected):
+            raise InvalidOperation(f"request {request_id!r} is neither retracted nor rejected")
         return e
 
     def rebuild(self, target: Logged, retract: bool, threads: int | None
