@@ -120,7 +120,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     for name, text in (("retract", "take back an update by its request id (the map becomes "
                                    "what it would be without it)"),
-                       ("reinstate", "put back a retracted update, or one the gate rejected (as trusted)")):
+                       ("reinstate", "put back a retracted update, or one the gate "
+                                     "rejected (as trusted)")):
         s = sub.add_parser(name, help=text)
         s.add_argument("request_id", help="the update's request id (from its ack or events)")
         s.add_argument("--json", action="store_true")
