@@ -51,7 +51,7 @@ from typing import Any, TypeVar
 import numpy as np
 import numpy.typing as npt
 import zenoh
-from mcsm import wire
+from mcsm import ops, wire
 from mcsm.connect import ZenohConfigLike, client_config
 from mcsm.errors import (
     BadMessage,
@@ -123,8 +123,6 @@ class MapClient:
         self.keys = wire.map_keys(map, prefix)
         self.timeout_s = float(timeout_s)
         self.namespace = wire.check_namespace(namespace) if namespace is not None else None
-        self._update_key = self.keys.update_as(namespace) if namespace else self.keys.update
-        self._remove_key = self.keys.remove_as(namespace) if namespace else self.keys.remove
         self._pinned = server_id
         self._server: str | None = server_id
         self.foreign_replies = 0
@@ -299,6 +297,17 @@ class MapClient:
             raise BadMessage("ack.server", f"the map's server {self._server}", ack.server)
         return ack
 
+    def _request(self, name: str, what: str, timeout_s: float | None, request_id: str | None,
+                 *args: Any, **kwargs: Any) -> Any:
+        """Send operation ``name`` of the table (:mod:`mcsm.ops`): its encoder's payload to
+        its key (the namespaced one for a namespaced operation of a namespaced client), its
+        reply decoded by its decoder (an ack also names the map's server)."""
+        op = ops.get(name)
+        key = self.keys.request(op.leaf, (self.namespace or "") if op.namespaced else "")
+        payload = op.encode(request_id or self.new_request_id(), *args, **kwargs)
+        decode = self._decode_ack if op.decode_reply is wire.decode_ack else op.decode_reply
+        return self._call(key, payload, decode, what, timeout_s)
+
     # ---------------------------------------------------------------- operations
     def update(self, a: str, b: str, samples: npt.ArrayLike, *,
                request_id: str | None = None, timeout_s: float | None = None,
@@ -336,19 +345,17 @@ class MapClient:
     def _update(self, a: str, b: str, arr: np.ndarray, request_id: str | None,
                 timeout_s: float | None, trusted: bool = False,
                 stamp_ns: int | None = None) -> wire.Ack:
-        rid = request_id or self.new_request_id()
-        payload = wire.encode_update(rid, a, b, arr, sender=self.sender, trusted=trusted,
-                                     stamp_ns=stamp_ns)
-        return self._call(self._update_key, payload, self._decode_ack, f"update {a}->{b}",
-                          timeout_s)
+        ack: wire.Ack = self._request("update", f"update {a}->{b}", timeout_s, request_id, a, b,
+                                      arr, sender=self.sender, trusted=trusted,
+                                      stamp_ns=stamp_ns)
+        return ack
 
     def remove(self, frame: str, *, request_id: str | None = None,
                timeout_s: float | None = None) -> wire.Ack:
         """Remove ``frame`` from the map (other estimates and correlations unchanged)."""
-        rid = request_id or self.new_request_id()
-        payload = wire.encode_remove(rid, frame, sender=self.sender)
-        return self._call(self._remove_key, payload, self._decode_ack, f"remove {frame}",
-                          timeout_s)
+        ack: wire.Ack = self._request("remove", f"remove {frame}", timeout_s, request_id, frame,
+                                      sender=self.sender)
+        return ack
 
     def retract(self, target: str, *, request_id: str | None = None,
                 timeout_s: float | None = None) -> wire.Ack:
@@ -357,25 +364,21 @@ class MapClient:
         map that never had it). The ack's verdict is the target's (``retracted``); events
         list the verdicts that changed. Refused (``InvalidOperation``) when the target is not
         an update of the retract window or is already retracted."""
-        rid = request_id or self.new_request_id()
-        payload = wire.encode_retract(rid, target, sender=self.sender)
-        return self._call(self.keys.retract, payload, self._decode_ack, f"retract {target}",
-                          timeout_s)
+        ack: wire.Ack = self._request("retract", f"retract {target}", timeout_s, request_id,
+                                      target, sender=self.sender)
+        return ack
 
     def reinstate(self, target: str, *, request_id: str | None = None,
                   timeout_s: float | None = None) -> wire.Ack:
         """Put back a retracted update, or one the gate rejected (as if it had always been
         applied, gate bypassed)."""
-        rid = request_id or self.new_request_id()
-        payload = wire.encode_retract(rid, target, sender=self.sender)
-        return self._call(self.keys.reinstate, payload, self._decode_ack,
-                          f"reinstate {target}", timeout_s)
+        ack: wire.Ack = self._request("reinstate", f"reinstate {target}", timeout_s, request_id,
+                                      target, sender=self.sender)
+        return ack
 
     def verdict(self, target: str, *, timeout_s: float | None = None) -> wire.Verdict | None:
         """The current verdict of a past request (None for a remove or an import)."""
-        payload = wire.encode_verdict_request(self.new_request_id(), target)
-        ack = self._call(self.keys.verdict, payload, self._decode_ack, f"verdict {target}",
-                         timeout_s)
+        ack: wire.Ack = self._request("verdict", f"verdict {target}", timeout_s, None, target)
         return ack.verdict
 
     def query(self, a: str, b: str, *, timeout_s: float | None = None) -> np.ndarray:
@@ -385,9 +388,8 @@ class MapClient:
         ------
         UnknownFrame, NotRelated
         """
-        payload = wire.encode_query(self.new_request_id(), a, b, "samples")
-        r = self._call(self.keys.query, payload, wire.decode_query_reply, f"query {a}->{b}",
-                       timeout_s)
+        r: wire.QueryReply = self._request("query", f"query {a}->{b}", timeout_s, None, a, b,
+                                           "samples")
         if r.samples is None:
             raise BadMessage("samples", "samples in the query reply", "none")
         return r.samples
@@ -395,34 +397,31 @@ class MapClient:
     def marginal(self, a: str, b: str, *,
                  timeout_s: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Mean ``(7,)`` and tangent covariance ``(6, 6)`` (``tx ty tz rx ry rz``) of ``a -> b``."""
-        payload = wire.encode_query(self.new_request_id(), a, b, "marginal")
-        r = self._call(self.keys.query, payload, wire.decode_query_reply,
-                       f"marginal {a}->{b}", timeout_s)
+        r: wire.QueryReply = self._request("query", f"marginal {a}->{b}", timeout_s, None, a,
+                                           b, "marginal")
         if r.mean is None or r.cov is None:
             raise BadMessage("mean/cov", "mean and cov in the query reply", "none")
         return r.mean, r.cov
 
     def info(self, *, timeout_s: float | None = None) -> wire.MapInfo:
         """Frames, components, N, options, sequence number and state digest of the map."""
-        return self._call(self.keys.info, wire.encode_info(self.new_request_id()),
-                          wire.decode_info_reply, "info", timeout_s)
+        info: wire.MapInfo = self._request("info", "info", timeout_s, None)
+        return info
 
     def export_submap(self, component: str, *, timeout_s: float | None = None) -> Any:
         """The whole component containing frame ``component`` as the core's ``Submap``
         (root first, all edges, sample order intact)."""
-        payload = wire.encode_submap_export(self.new_request_id(), component)
-        r = self._call(self.keys.submap, payload, wire.decode_submap_reply,
-                       f"export {component}", timeout_s)
+        r: wire.SubmapReply = self._request("export", f"export {component}", timeout_s, None,
+                                            component)
         return r.submap.to_core()
 
     def import_submap(self, submap: Any, *, request_id: str | None = None,
                       timeout_s: float | None = None) -> wire.Ack:
         """Add an exported component (core ``Submap`` or :class:`mcsm.wire.SubmapData`) as a
         new component; its frame names must all be new (``FrameExists`` otherwise)."""
-        rid = request_id or self.new_request_id()
-        payload = wire.encode_submap_import(rid, submap, sender=self.sender)
-        return self._call(self.keys.submap, payload, self._decode_ack, "import submap",
-                          timeout_s)
+        ack: wire.Ack = self._request("import", "import submap", timeout_s, request_id, submap,
+                                      sender=self.sender)
+        return ack
 
     def wait_for_server(self, timeout_s: float = 10.0) -> wire.MapInfo:
         """``info``, waiting up to ``timeout_s`` for the server (``NoServer``/``Timeout``)."""

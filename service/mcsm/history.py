@@ -24,7 +24,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
-from mcsm import wire
+from mcsm import ops, wire
 from mcsm.core.smap import StochasticMap
 from mcsm.errors import InvalidOperation, McsmError
 
@@ -65,7 +65,7 @@ class History:
         """Log an applied input (after the map changed) and take the scheduled snapshot."""
         entry = Logged(seq, op, request_id, req, verdict)
         self.log.append(entry)
-        if op in ("update", "remove", "import"):
+        if ops.get(op).change is not None:  # an input (not a retract): a possible target
             self.by_id[request_id] = entry
         if seq % self.snapshot_every == 0:
             self.snapshots.append((seq, smap.snapshot()))
@@ -102,7 +102,7 @@ class History:
             raise InvalidOperation(
                 f"request {request_id!r} is not an update of the retract window (the inputs "
                 f"after seq {self.window_start}; see mcsm serve --snapshots-kept)")
-        if e.op != "update":
+        if not ops.get(e.op).retractable:
             raise InvalidOperation(f"request {request_id!r} is a {e.op}: only updates can be "
                                    "retracted or reinstated")
         if retract and e.retracted:
@@ -129,20 +129,21 @@ class History:
                 continue
             left_out = (e.retracted and e is not target) or (e is target and retract)
             verdict = e.verdict
-            if e.op in ("update", "remove", "import"):
+            op = ops.get(e.op)
+            if op.change is not None:
                 if left_out:
                     verdict = _with_status(verdict, "retracted")
                 else:
                     try:  # a reinstated update goes back in whatever the gate says
-                        verdict = _apply(smap, e, trusted=e is target)
+                        verdict = op.change(smap, e.req, trusted=e is target).verdict
                     except McsmError as exc:  # it no longer applies (its frame is gone)
                         verdict = wire.Verdict("rejected", None, 0, None,
                                                f"no longer applies: {type(exc).__name__}")
                     if e is target:
                         verdict = _with_status(verdict, "reinstated")
-                if verdict != e.verdict and e.op == "update":
+                if verdict != e.verdict and op.retractable:
                     changed[e.request_id] = verdict  # type: ignore[assignment]
-            new_state[e.seq] = (left_out if e.op == "update" else e.retracted, verdict)
+            new_state[e.seq] = (left_out if op.retractable else e.retracted, verdict)
             if e.seq % self.snapshot_every == 0:
                 new_snaps.append((e.seq, smap.snapshot()))
 
@@ -154,19 +155,6 @@ class History:
             self._trim()
 
         return smap, changed, commit
-
-
-def _apply(smap: StochasticMap, e: Logged, trusted: bool = False) -> wire.Verdict | None:
-    req = e.req
-    if e.op == "update":
-        r = smap.update(req.a, req.b, req.samples, trusted=req.trusted or trusted)
-        v = r.verdict
-        return wire.Verdict(v.status, v.nis, v.dof, v.threshold, v.reason, req.stamp_ns)
-    if e.op == "remove":
-        smap.remove(req.frame)
-        return None
-    smap.import_component(req.submap.to_core())
-    return None
 
 
 def _with_status(v: wire.Verdict | None, status: str) -> wire.Verdict:

@@ -15,15 +15,18 @@ topic                       message
 ``/mcsm/in/update``         ``record_input``: update or point update, exact request bytes
 ``/mcsm/in/remove``         ``record_input``: remove
 ``/mcsm/in/submap_import``  ``record_input``: submap import
+``/mcsm/in/retract``        ``record_input``: retract (``/mcsm/in/reinstate``: reinstate)
 ``/mcsm/checkpoint``        ``record_checkpoint``: state digest after operation ``seq``
+``/mcsm/snapshot``          ``record_snapshot``: the whole state of a map after ``seq``
 ==========================  ===================================================================
 
-Each input carries the map's sequence number (also the MCAP ``sequence``), the receive time
-(the MCAP ``publish_time``; ``log_time`` is when the record was written, never earlier), the
-sender and the request id. Queries and exports change nothing and are not recorded; rejected
-inputs are not recorded. A metadata record ``mcsm`` names the software and the core's
-arithmetic version (:data:`mcsm.core.ARITHMETIC_VERSION`); recordings without it were made by
-arithmetic version 1.
+The input topics are the table's (:data:`mcsm.ops.INPUT_TOPICS`). Each input carries the map's
+sequence number (also the MCAP ``sequence``), the receive time (the MCAP ``publish_time``;
+``log_time`` is when the record was written, never earlier), the sender and the request id.
+Queries and exports change nothing and are not recorded; rejected inputs are not recorded. A
+metadata record ``mcsm`` names the software and the core's arithmetic version
+(:data:`mcsm.core.ARITHMETIC_VERSION`); recordings without it were made by arithmetic version
+1.
 
 Replay (:func:`replay`) reads the file with mcap's ``StreamReader`` only (checking CRCs),
 because after a SIGKILL the file has no summary or footer; it decodes each request with
@@ -69,7 +72,7 @@ from mcap.records import (
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 
-from mcsm import __version__, wire
+from mcsm import __version__, ops, wire
 from mcsm.core import ARITHMETIC_VERSION
 from mcsm.core.smap import StochasticMap
 from mcsm.errors import McsmError
@@ -81,10 +84,9 @@ log = logging.getLogger(__name__)
 TOPIC_CONFIG = "/mcsm/config"
 TOPIC_CHECKPOINT = "/mcsm/checkpoint"
 TOPIC_SNAPSHOT = "/mcsm/snapshot"
-INPUT_TOPICS = {"update": "/mcsm/in/update", "remove": "/mcsm/in/remove",
-                "import": "/mcsm/in/submap_import", "retract": "/mcsm/in/retract",
-                "reinstate": "/mcsm/in/reinstate"}
-TOPIC_OPS = {v: k for k, v in INPUT_TOPICS.items()}
+INPUT_TOPICS = ops.INPUT_TOPICS
+"""Recording topic of each state-changing operation (from the table, :mod:`mcsm.ops`)."""
+TOPIC_OPS = ops.TOPIC_OPS
 _SCHEMAS = {TOPIC_CONFIG: ("mcsm.RecordConfig", "record_config.json"),
             TOPIC_CHECKPOINT: ("mcsm.RecordCheckpoint", "record_checkpoint.json"),
             TOPIC_SNAPSHOT: ("mcsm.RecordSnapshot", "record_snapshot.json"),
@@ -137,20 +139,7 @@ def schema_bytes(filename: str) -> bytes:
     return resources.files("mcsm.schemas").joinpath(filename).read_bytes()
 
 
-def decode_input(op: str, payload: bytes, n_samples: int) -> Any:
-    """Decode a state-changing request with the wire codec (live and replay share this)."""
-    if op == "update":
-        return wire.decode_update(payload, n_samples)
-    if op in ("retract", "reinstate"):
-        return wire.decode_retract(payload)
-    if op == "remove":
-        return wire.decode_remove(payload)
-    if op == "import":
-        req = wire.decode_submap_request(payload, n_samples)
-        if not isinstance(req, wire.SubmapImportRequest):
-            raise McsmError("an export request cannot be recorded as an input")
-        return req
-    raise McsmError(f"unknown operation {op!r}")
+decode_input = ops.decode_input
 
 
 # --------------------------------------------------------------------------------------------

@@ -44,10 +44,9 @@ from typing import Any
 
 import zenoh
 
-from mcsm import wire
-from mcsm.core.names import namespace_of
+from mcsm import ops, wire
 from mcsm.core.smap import StochasticMap
-from mcsm.errors import Busy, Forbidden, InternalError, McsmError, UnknownFrame
+from mcsm.errors import Busy, InternalError, McsmError
 from mcsm.history import DEFAULT_SNAPSHOT_EVERY, DEFAULT_SNAPSHOTS_KEPT
 from mcsm.recording import (
     Recorder,
@@ -245,28 +244,12 @@ class Server:
         key = str(query.key_expr)
         op = "request"
         try:
-            op, ns = k.route(key)
+            leaf, ns = k.route(key)
+            op = leaf
             payload = query.payload.to_bytes() if query.payload is not None else b""
-            req: Any
-            if op == "update":
-                req = wire.decode_update(payload, st.n_samples)
-                if ns and namespace_of(req.a) != ns:
-                    raise Forbidden(key, req.a, ns, "an update observed from another namespace")
-            elif op == "remove":
-                req = wire.decode_remove(payload)
-                if ns and namespace_of(req.frame) != ns:
-                    raise Forbidden(key, req.frame, ns, "a remove of another namespace's frame")
-            elif op in ("retract", "reinstate"):
-                req = wire.decode_retract(payload)
-            elif op == "verdict":
-                req = wire.decode_verdict_request(payload)
-            elif op == "query":
-                req = wire.decode_query(payload)
-            elif op == "info":
-                req = wire.decode_info(payload) if payload else wire.InfoRequest()
-            else:
-                req = wire.decode_submap_request(payload, st.n_samples)
-                op = "import" if isinstance(req, wire.SubmapImportRequest) else "export"
+            operation, req = ops.decode_request(leaf, payload, st.n_samples)
+            op = operation.name
+            operation.check_namespace(req, ns, key)
         except McsmError as exc:
             self._reject(st, query, exc, "", op)
             query.drop()
@@ -322,45 +305,23 @@ class Server:
         if self.failed.is_set():
             self._reply_err(item, McsmError("server stopped: recording failed"))
             return
-        if item.op in ("update", "remove", "import", "retract", "reinstate"):
+        operation = ops.get(item.op)
+        if operation.changes_state:
             self._apply(item)
-        elif item.op == "verdict":
-            try:
-                ack = st.verdict_of(item.request.target)
-            except McsmError as exc:
-                self._reject(st, item.query, exc, item.request.request_id, item.op)
-                return
-            self._reply(item, wire.encode_ack(replace(ack, server=self.server_id)))
-        elif item.op == "query":
-            req = item.request
-            try:
-                if req.want == "marginal":
-                    mean, cov = st.map.marginal(req.a, req.b)
-                    r = wire.QueryReply(req.request_id, req.a, req.b, st.seq, mean=mean, cov=cov)
-                else:
-                    r = wire.QueryReply(req.request_id, req.a, req.b, st.seq,
-                                        samples=st.map.query(req.a, req.b))
-            except McsmError as exc:
-                self._reject(st, item.query, exc, req.request_id, item.op)
-                return
-            self._reply(item, wire.encode_query_reply(r))
-        elif item.op == "info":
-            self._reply(item, wire.encode_info_reply(self.info(st)))
-        elif item.op == "export":
-            req = item.request
-            try:
-                sub = st.map.export_component(req.frame)
-            except McsmError as exc:
-                self._reject(st, item.query, exc, req.request_id, item.op)
-                return
-            self._reply(item, wire.encode_submap_reply(
-                wire.SubmapReply(req.request_id, st.seq, wire.submap_from_core(sub))))
-        else:
-            raise McsmError(f"unknown operation {item.op!r}")
+            return
+        if operation.answer is None:
+            raise McsmError(f"operation {item.op!r} has no answer")
+        try:
+            payload = operation.answer(self, st, item.request)
+        except McsmError as exc:
+            self._reject(st, item.query, exc, getattr(item.request, "request_id", ""), item.op)
+            return
+        self._reply(item, payload)
 
     def _apply(self, item: _Item) -> None:
         st, req = item.state, item.request
-        fingerprint = wire.request_fingerprint(item.op, req)
+        operation = ops.get(item.op)
+        fingerprint = ops.fingerprint(item.op, req)
         try:
             dup = st.lookup(req.request_id, fingerprint, item.recv_ns)
         except McsmError as exc:  # RequestIdReused: an id sent again with another request
@@ -372,10 +333,7 @@ class Server:
             self._reply(item, wire.encode_ack(replace(dup, server=self.server_id)))
             return
         try:
-            if item.namespace and item.op == "update" \
-                    and namespace_of(req.b) != item.namespace and not _has(st, req.b):
-                raise Forbidden(item.key, req.b, item.namespace,
-                                "a new frame in another namespace")
+            operation.check_namespace_map(st, req, item.namespace, item.key)
             ack = st.apply(item.op, req, time_ns=item.recv_ns, fingerprint=fingerprint)
         except McsmError as exc:
             self._reject(st, item.query, exc, req.request_id, item.op)
@@ -400,16 +358,7 @@ class Server:
             self._reply_err(item, McsmError(f"recording failed: {exc}"))
             return
         self._reply(item, wire.encode_ack(ack))
-        frames = ack.frames_added or ack.frames_removed
-        if item.op == "update":
-            frames = (req.a, req.b)
-        extra: dict[str, Any] = {"verdict": ack.verdict.to_dict()} if ack.verdict else {}
-        if item.op in ("retract", "reinstate"):  # what changed: the target and re-gated inputs
-            extra["target"] = req.target
-            extra["changed"] = {rid: v.to_dict() for rid, v in st.last_changed.items()}
-        ev = wire.Event(map=st.name, seq=ack.seq, op=item.op, kind=ack.kind,
-                        frames=tuple(frames), component=ack.component, time_ns=time.time_ns(),
-                        digest=digest, extra=extra)
+        ev = ops.event(item.op, st, req, ack, time_ns=time.time_ns(), digest=digest)
         try:
             self._publishers[st.name].put(wire.encode_event(ev))
         except zenoh.ZError as exc:
@@ -428,14 +377,6 @@ class Server:
             verdicts=dict(st.verdicts),
             recording=str(self.recorder.path) if self.recorder is not None else "",
             queue_length=self._queue.qsize())
-
-
-def _has(st: MapState, frame: str) -> bool:
-    try:
-        st.map.is_point(frame)
-    except UnknownFrame:
-        return False
-    return True
 
 
 def _source(query: zenoh.Query) -> str:

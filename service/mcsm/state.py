@@ -12,7 +12,7 @@ from collections import Counter, OrderedDict
 from dataclasses import replace
 from typing import Any
 
-from mcsm import wire
+from mcsm import ops, wire
 from mcsm.core.smap import StochasticMap
 from mcsm.errors import InvalidOperation, McsmError, RequestIdReused
 from mcsm.history import DEFAULT_SNAPSHOT_EVERY, DEFAULT_SNAPSHOTS_KEPT, History
@@ -91,7 +91,8 @@ class MapState:
     def apply(self, op: str, req: Any, *, time_ns: int | None = None,
               fingerprint: str | None = None) -> wire.Ack:
         """Apply one decoded input received at ``time_ns``; returns its ack (seq ``seq + 1``).
-        ``fingerprint`` is ``wire.request_fingerprint(op, req)`` if the caller has it.
+        ``op`` names a state-changing operation of :mod:`mcsm.ops`; ``fingerprint`` is
+        ``ops.fingerprint(op, req)`` if the caller has it.
 
         Raises
         ------
@@ -99,40 +100,34 @@ class MapState:
             Whatever the core refuses; the map and ``seq`` are then unchanged.
         """
         self.last_changed = {}
-        if op == "update":
-            r = self.map.update(req.a, req.b, req.samples, trusted=req.trusted)
-            v = r.verdict
-            verdict = wire.Verdict(v.status, v.nis, v.dof, v.threshold, v.reason, req.stamp_ns)
-            ack = wire.Ack(req.request_id, self.seq + 1, op, r.kind, r.component,
-                           frames_added=tuple(r.frames_added), verdict=verdict)
-            self.verdicts[verdict.status] += 1
-        elif op == "remove":
-            rr = self.map.remove(req.frame)
-            ack = wire.Ack(req.request_id, self.seq + 1, op, "remove", rr.component,
-                           frames_removed=tuple(rr.frames_removed))
-        elif op == "import":
-            r = self.map.import_component(req.submap.to_core())
-            ack = wire.Ack(req.request_id, self.seq + 1, op, r.kind, r.component,
-                           frames_added=tuple(r.frames_added))
-        elif op in ("retract", "reinstate"):
-            ack = self._retract(op, req)
+        operation = ops.get(op)
+        if operation.retract is not None:
+            ack = self._retract(op, req, operation.retract)
+        elif operation.change is not None:
+            c = operation.change(self.map, req)
+            ack = wire.Ack(req.request_id, self.seq + 1, op, c.kind, c.component,
+                           frames_added=c.frames_added, frames_removed=c.frames_removed,
+                           verdict=c.verdict)
+            if c.verdict is not None:
+                self.verdicts[c.verdict.status] += 1
         else:
-            raise McsmError(f"unknown operation {op!r}")
+            raise McsmError(f"{op!r} changes nothing: it is answered, not applied")
         self.seq = ack.seq
         t_ns = time.time_ns() if time_ns is None else int(time_ns)
         self._acks.pop(req.request_id, None)
-        fp = fingerprint if fingerprint is not None else wire.request_fingerprint(op, req)
+        fp = fingerprint if fingerprint is not None else ops.fingerprint(op, req)
         self._acks[req.request_id] = (ack, fp, t_ns)
         self._forget(t_ns)
         self.history.record(ack.seq, op, req.request_id, req, ack.verdict, self.map)
         return ack
 
-    def _retract(self, op: str, req: Any) -> wire.Ack:
-        """Leave the update ``req.target`` out (retract) or put it back (reinstate): restore
-        the last snapshot before it and apply every later input of the window again."""
-        target = self.history.target(req.target, op == "retract")
-        before = {e.request_id: e.verdict for e in self.history.log if e.op == "update"}
-        smap, changed, commit = self.history.rebuild(target, op == "retract", self.map.threads)
+    def _retract(self, op: str, req: Any, retract: bool) -> wire.Ack:
+        """Leave the update ``req.target`` out (``retract``) or put it back (reinstate):
+        restore the last snapshot before it and apply every later input of the window again."""
+        target = self.history.target(req.target, retract)
+        before = {e.request_id: e.verdict for e in self.history.log
+                  if ops.get(e.op).retractable}
+        smap, changed, commit = self.history.rebuild(target, retract, self.map.threads)
         self.map = smap
         commit()
         for rid, v in changed.items():
@@ -160,7 +155,7 @@ class MapState:
         retry of it is not applied twice); its ack is not known, only its seq and op."""
         ack = wire.Ack(req.request_id, int(seq), op, "restored", None)
         self._acks.pop(req.request_id, None)
-        self._acks[req.request_id] = (ack, wire.request_fingerprint(op, req), int(time_ns))
+        self._acks[req.request_id] = (ack, ops.fingerprint(op, req), int(time_ns))
         self._forget(int(time_ns))
 
     def verdict_of(self, request_id: str) -> wire.Ack:

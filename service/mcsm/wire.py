@@ -18,7 +18,6 @@ decodes with the very same code. Replay decodes recorded requests through it too
 
 from __future__ import annotations
 
-import hashlib
 import math
 import re
 from collections.abc import Mapping, Sequence
@@ -151,36 +150,37 @@ class Keys:
     def alive_any(self) -> str:
         return self._k("alive/*")
 
+    def request(self, leaf: str, namespace: str = "") -> str:
+        """The request key of operation leaf ``leaf`` (see :mod:`mcsm.ops`), restricted to
+        ``namespace`` if given (``.../update/robot1``)."""
+        return self._k(f"{leaf}/{check_namespace(namespace)}" if namespace else leaf)
+
     def route(self, key: str) -> tuple[str, str]:
-        """``(leaf, namespace)`` of a concrete key of this map: ``("update", "robot1")`` for
-        ``.../update/robot1``, ``("info", "")`` for ``.../info``.
+        """``(leaf, namespace)`` of a concrete request key of this map (:func:`mcsm.ops.route`).
 
         Raises
         ------
         BadMessage
-            If ``key`` is not one of the map's request keys (wildcards included: a request
-            must name one concrete key).
+            If ``key`` is not one of the map's request keys (wildcards included).
         """
-        head = self.base + "/"
-        rest = key[len(head):] if key.startswith(head) else ""
-        leaf, sep, ns = rest.partition("/")
-        if leaf in ("update", "remove") and (not sep or _NS_RE.fullmatch(ns)):
-            return leaf, ns
-        if leaf in ("query", "info", "submap", "retract", "reinstate", "verdict") and not sep:
-            return leaf, ""
-        raise BadMessage("key", f"one of {self.base}/{{update,remove}}[/<namespace>], "
-                         "query, info, submap, retract, reinstate or verdict (no wildcards)",
-                         _short(key))
+        from mcsm import ops  # the table of operations builds on this module
+
+        return ops.route(self, key)
 
 
 _NS_RE = re.compile(r"[A-Za-z0-9_.:+-]{1,128}")
 
 
+def is_namespace(namespace: Any) -> bool:
+    """Whether ``namespace`` is one frame-name segment of ``[A-Za-z0-9_.:+-]`` (``robot1``)."""
+    return isinstance(namespace, str) and _NS_RE.fullmatch(namespace) is not None
+
+
 def check_namespace(namespace: str) -> str:
     """Return ``namespace`` if it is a valid frame-name segment (``robot1``), else raise."""
-    if not isinstance(namespace, str) or not _NS_RE.fullmatch(namespace):
+    if not is_namespace(namespace):
         raise BadMessage("namespace", "one frame-name segment of [A-Za-z0-9_.:+-]",
-                         _short(namespace))
+                         short(namespace))
     return namespace
 
 
@@ -195,10 +195,10 @@ def map_keys(map_name: str = DEFAULT_MAP, prefix: str = DEFAULT_PREFIX) -> Keys:
     """
     if not isinstance(map_name, str) or not _MAP_RE.fullmatch(map_name):
         raise BadMessage("map", "a map name of 1-64 characters from [A-Za-z0-9_.+-]",
-                         _short(map_name))
+                         short(map_name))
     if not isinstance(prefix, str) or not _PREFIX_RE.fullmatch(prefix):
         raise BadMessage("prefix", "1-8 segments of [A-Za-z0-9_.+-] joined by '/'",
-                         _short(prefix))
+                         short(prefix))
     return Keys(prefix=prefix, map=map_name)
 
 
@@ -329,13 +329,13 @@ class Verdict:
         _keys(d, ("status", "nis", "dof", "threshold", "reason", "stamp_ns"), ())
         status = _str(d, "status", max_chars=16)
         if status not in VERDICT_STATUSES:
-            raise BadMessage("verdict.status", " | ".join(VERDICT_STATUSES), _short(status))
+            raise BadMessage("verdict.status", " | ".join(VERDICT_STATUSES), short(status))
         for key in ("nis", "threshold"):
             if d[key] is not None and not isinstance(d[key], (int, float)):
-                raise BadMessage(f"verdict.{key}", "a number or nil", _short(d[key]))
+                raise BadMessage(f"verdict.{key}", "a number or nil", short(d[key]))
         stamp = d["stamp_ns"]
         if stamp is not None and type(stamp) is not int:
-            raise BadMessage("verdict.stamp_ns", "an integer or nil", _short(stamp))
+            raise BadMessage("verdict.stamp_ns", "an integer or nil", short(stamp))
         return cls(status=status, nis=None if d["nis"] is None else float(d["nis"]),
                    dof=_int(d, "dof"),
                    threshold=None if d["threshold"] is None else float(d["threshold"]),
@@ -426,7 +426,8 @@ class Event:
 # Low-level helpers
 # --------------------------------------------------------------------------------------------
 
-def _short(x: Any, n: int = 48) -> str:
+def short(x: Any, n: int = 48) -> str:
+    """``repr(x)``, cut to ``n`` characters (for error messages about hostile input)."""
     s = repr(x)
     return s if len(s) <= n else s[: n - 3] + "..."
 
@@ -508,14 +509,14 @@ def _str(obj: Mapping[str, Any], key: str, *, max_chars: int, default: str | Non
 def _int(obj: Mapping[str, Any], key: str, *, lo: int = 0) -> int:
     val = obj.get(key)
     if type(val) is not int or val < lo:
-        raise BadMessage(key, f"an integer >= {lo}", _short(val))
+        raise BadMessage(key, f"an integer >= {lo}", short(val))
     return int(val)
 
 
 def check_frame(name: Any, fieldname: str = "frame") -> str:
     """Return ``name`` if it is a valid frame name, else raise :class:`BadMessage`."""
     if not is_frame_name(name):
-        raise BadMessage(fieldname, FRAME_RULE, _short(name))
+        raise BadMessage(fieldname, FRAME_RULE, short(name))
     return name
 
 
@@ -542,12 +543,12 @@ def unpack_array(obj: Any, fieldname: str, ndim: int, *, max_elems: int) -> Samp
                          sorted(str(k) for k in obj))
     if obj["dtype"] != "<f8":
         raise BadMessage(f"{fieldname}.dtype", "'<f8' (little-endian float64)",
-                         _short(obj["dtype"]))
+                         short(obj["dtype"]))
     shape = obj["shape"]
     if (not isinstance(shape, list) or len(shape) != ndim
             or not all(type(s) is int and s >= 0 for s in shape)):
         raise BadMessage(f"{fieldname}.shape", f"a list of {ndim} non-negative integers",
-                         _short(shape))
+                         short(shape))
     n_elems = math.prod(shape)
     if n_elems > max_elems:
         raise LimitExceeded(f"{fieldname} elements", n_elems, max_elems)
@@ -580,7 +581,7 @@ def decode_samples(obj: Any, n_samples: int | None, widths: tuple[int, ...] = (7
         n, w = obj["shape"]
         if type(w) is int and w not in widths:
             raise BadMessage(f"{fieldname}.shape", f"(N, {' or '.join(map(str, widths))})",
-                             _short(obj["shape"]))
+                             short(obj["shape"]))
         if type(n) is int and n > MAX_SAMPLES:
             raise LimitExceeded("samples", n, MAX_SAMPLES)
         if type(n) is int and n_samples is not None and n != n_samples:
@@ -629,10 +630,10 @@ def decode_update(payload: bytes, n_samples: int | None, *,
     sender = _str(d, "sender", max_chars=MAX_SENDER_CHARS, default="")
     trusted = d.get("trusted", False)
     if type(trusted) is not bool:
-        raise BadMessage("trusted", "true or false", _short(trusted))
+        raise BadMessage("trusted", "true or false", short(trusted))
     stamp_ns = _int(d, "stamp_ns") if "stamp_ns" in d else None
     if stamp_ns is not None and stamp_ns >= 2**63:
-        raise BadMessage("stamp_ns", "an integer below 2**63", _short(stamp_ns))
+        raise BadMessage("stamp_ns", "an integer below 2**63", short(stamp_ns))
     samples = decode_samples(d["samples"], n_samples)
     return UpdateRequest(request_id=rid, a=a, b=b, samples=samples, sender=sender,
                          trusted=trusted, stamp_ns=stamp_ns)
@@ -689,7 +690,7 @@ def decode_query(payload: bytes, *, max_bytes: int = MAX_PAYLOAD_BYTES) -> Query
     _keys(d, ("id", "a", "b"), ("want",))
     want = d.get("want", "samples")
     if want not in ("samples", "marginal"):
-        raise BadMessage("want", "'samples' or 'marginal'", _short(want))
+        raise BadMessage("want", "'samples' or 'marginal'", short(want))
     return QueryRequest(request_id=_request_id(d), a=check_frame(d["a"], "a"),
                         b=check_frame(d["b"], "b"), want=want)
 
@@ -735,7 +736,7 @@ def decode_submap_data(obj: Any, n_samples: int | None) -> SubmapData:
     frames = obj["frames"]
     flags = obj["is_point"]
     if not isinstance(frames, list) or not frames:
-        raise BadMessage("submap.frames", "a non-empty list of frame names", _short(frames))
+        raise BadMessage("submap.frames", "a non-empty list of frame names", short(frames))
     if len(frames) > MAX_SUBMAP_FRAMES:
         raise LimitExceeded("submap frames", len(frames), MAX_SUBMAP_FRAMES)
     for f in frames:
@@ -743,17 +744,17 @@ def decode_submap_data(obj: Any, n_samples: int | None) -> SubmapData:
     if len(set(frames)) != len(frames):
         raise BadMessage("submap.frames", "unique names", "duplicates")
     if frames[0] != root:
-        raise BadMessage("submap.frames", "the root first", _short(frames[0]))
+        raise BadMessage("submap.frames", "the root first", short(frames[0]))
     if (not isinstance(flags, list) or len(flags) != len(frames)
             or not all(isinstance(p, bool) for p in flags)):
-        raise BadMessage("submap.is_point", f"a list of {len(frames)} booleans", _short(flags))
+        raise BadMessage("submap.is_point", f"a list of {len(frames)} booleans", short(flags))
     e = obj["edges"]
     if isinstance(e, dict) and isinstance(e.get("shape"), list) and len(e["shape"]) == 3:
         m, n, w = e["shape"]
         if type(n) is int and n_samples is not None and n != n_samples:
             raise SampleCountMismatch(n_samples, n)
         if m != len(frames) or w != 7:
-            raise BadMessage("submap.edges.shape", f"({len(frames)}, N, 7)", _short(e["shape"]))
+            raise BadMessage("submap.edges.shape", f"({len(frames)}, N, 7)", short(e["shape"]))
     edges = unpack_array(e, "submap.edges", 3,
                          max_elems=MAX_PAYLOAD_BYTES // 8 if n_samples is not None
                          else MAX_REPLY_BYTES // 8)
@@ -779,7 +780,7 @@ def decode_submap_request(payload: bytes, n_samples: int | None, *,
         return SubmapImportRequest(request_id=rid, submap=decode_submap_data(d["submap"],
                                                                               n_samples),
                                    sender=sender)
-    raise BadMessage("op", "'export' or 'import'", _short(op))
+    raise BadMessage("op", "'export' or 'import'", short(op))
 
 
 # --------------------------------------------------------------------------------------------
@@ -797,7 +798,7 @@ def encode_ack(ack: Ack) -> bytes:
 
 def _str_list(obj: Any, fieldname: str) -> tuple[str, ...]:
     if not isinstance(obj, list) or not all(isinstance(s, str) for s in obj):
-        raise BadMessage(fieldname, "a list of strings", _short(obj))
+        raise BadMessage(fieldname, "a list of strings", short(obj))
     return tuple(obj)
 
 
@@ -807,7 +808,7 @@ def decode_ack(payload: bytes) -> Ack:
               "duplicate"), ("server", "verdict"))
     comp = d["component"]
     if comp is not None and not isinstance(comp, str):
-        raise BadMessage("component", "a frame name or nil", _short(comp))
+        raise BadMessage("component", "a frame name or nil", short(comp))
     return Ack(request_id=_str(d, "id", max_chars=MAX_ID_CHARS), seq=_int(d, "seq"),
                op=_str(d, "op", max_chars=32), kind=_str(d, "kind", max_chars=32),
                component=comp, frames_added=_str_list(d["frames_added"], "frames_added"),
@@ -815,37 +816,6 @@ def decode_ack(payload: bytes) -> Ack:
                duplicate=bool(d["duplicate"]),
                server=_str(d, "server", max_chars=MAX_ID_CHARS, default=""),
                verdict=Verdict.from_dict(d["verdict"]) if "verdict" in d else None)
-
-
-def request_fingerprint(op: str, req: Any) -> str:
-    """A digest of what a state-changing request asks for (not its id or sender).
-
-    Two requests with one id and the same fingerprint are one request sent twice (a retry);
-    with different fingerprints they are different requests (``RequestIdReused``). SHA-256
-    (hardware-accelerated on current CPUs) over the names and the sample bytes, truncated to
-    128 bits.
-    """
-    h = hashlib.sha256(op.encode())
-    if isinstance(req, UpdateRequest):
-        h.update(f"\0{req.a}\0{req.b}\0{req.samples.shape}\0".encode())
-        h.update(_bytes_view(req.samples))
-    elif isinstance(req, RemoveRequest):
-        h.update(f"\0{req.frame}".encode())
-    elif isinstance(req, RetractRequest):
-        h.update(f"\0{req.target}".encode())
-    elif isinstance(req, SubmapImportRequest):
-        sub = req.submap
-        h.update(f"\0{sub.root}\0{'/'.join(sub.frames)}\0{sub.is_point}\0"
-                 f"{sub.edges.shape}\0".encode())
-        h.update(_bytes_view(sub.edges))
-    else:
-        raise McsmError(f"no fingerprint for {type(req).__name__}")
-    return h.hexdigest()[:32]
-
-
-def _bytes_view(a: Samples) -> memoryview:
-    """The little-endian float64 bytes of ``a`` without a copy when it is already so."""
-    return np.ascontiguousarray(a, dtype=F8).data.cast("B")
 
 
 def encode_query_reply(r: QueryReply) -> bytes:
@@ -912,7 +882,7 @@ def decode_info_reply(payload: bytes) -> MapInfo:
 def _count_map(obj: Any, fieldname: str) -> dict[str, int]:
     if not isinstance(obj, dict) or not all(
             isinstance(k, str) and type(v) is int for k, v in obj.items()):
-        raise BadMessage(fieldname, "a map of names to counts", _short(obj))
+        raise BadMessage(fieldname, "a map of names to counts", short(obj))
     return dict(obj)
 
 
@@ -947,7 +917,7 @@ def decode_error(payload: bytes) -> McsmError:
     d = unpack(payload, max_bytes=MAX_PAYLOAD_BYTES)
     _keys(d, ("error", "message"), ("fields", "id"))
     if not isinstance(d["error"], str) or not isinstance(d["message"], str):
-        raise BadMessage("error", "strings error and message", _short(d))
+        raise BadMessage("error", "strings error and message", short(d))
     if "fields" in d and not isinstance(d["fields"], dict):
         raise BadMessage("fields", "a map", type(d["fields"]).__name__)
     return McsmError.from_dict(d)
@@ -968,10 +938,10 @@ def decode_event(payload: bytes) -> Event:
           ("extra",))
     dig = d["digest"]
     if dig is not None and not isinstance(dig, str):
-        raise BadMessage("digest", "a hex string or nil", _short(dig))
+        raise BadMessage("digest", "a hex string or nil", short(dig))
     comp = d["component"]
     if comp is not None and not isinstance(comp, str):
-        raise BadMessage("component", "a frame name or nil", _short(comp))
+        raise BadMessage("component", "a frame name or nil", short(comp))
     extra = d.get("extra", {})
     if not isinstance(extra, dict):
         raise BadMessage("extra", "a map", type(extra).__name__)

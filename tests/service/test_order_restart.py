@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 import zenoh
-from mcsm import StochasticMap, wire
+from mcsm import StochasticMap, ops, wire
 from mcsm.errors import McsmError, RequestIdReused
 from mcsm_client.client import MapClient
 
@@ -190,7 +190,7 @@ def test_id_memory_is_bounded_by_time_and_count() -> None:
     reqs = {f"i{k}": up(f"i{k}", f"f{k}") for k in range(4)}
     for k, req in enumerate(reqs.values()):
         st.apply("update", req, time_ns=t0 + k * 10**9)
-    fp = {rid: wire.request_fingerprint("update", r) for rid, r in reqs.items()}
+    fp = {rid: ops.fingerprint("update", r) for rid, r in reqs.items()}
     now = t0 + 4 * 10**9
     assert st.lookup("i0", fp["i0"], now) is None  # beyond the count of 3
     dup = st.lookup("i1", fp["i1"], now)
