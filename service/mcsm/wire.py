@@ -20,9 +20,9 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
-from typing import Any, Literal, cast
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field, fields
+from typing import Any, Literal, TypeVar, cast
 
 import msgpack
 import numpy as np
@@ -67,6 +67,7 @@ _MAP_RE = re.compile(r"[A-Za-z0-9_.+-]{1,64}")
 _PREFIX_RE = re.compile(r"[A-Za-z0-9_.+-]{1,64}(/[A-Za-z0-9_.+-]{1,64}){0,7}")
 
 QueryWant = Literal["samples", "marginal"]
+M = TypeVar("M")
 
 
 # --------------------------------------------------------------------------------------------
@@ -203,6 +204,156 @@ def map_keys(map_name: str = DEFAULT_MAP, prefix: str = DEFAULT_PREFIX) -> Keys:
 
 
 # --------------------------------------------------------------------------------------------
+# Messages derived from their dataclasses
+# --------------------------------------------------------------------------------------------
+# A reply or event dataclass whose every field carries ``metadata=wire_field(...)`` is encoded
+# and decoded field by field (:func:`message_dict`, :func:`from_message_dict`): adding a field
+# to such a message is one edit here plus its JSON Schema. Each field names its wire key, the
+# check its decoded value must pass (the hostile-input rules: types, lengths, ranges), how it
+# is packed, whether a peer may omit it (a field added later: older peers do not send it, the
+# dataclass default applies) and whether the encoder leaves it out (e.g. when None).
+
+Check = Callable[[Any, str], Any]
+
+
+@dataclass(frozen=True)
+class WireField:
+    """How one dataclass field travels: see :func:`wire_field`."""
+
+    key: str | None
+    check: Check
+    pack: Callable[[Any], Any]
+    required: bool
+    omit: Callable[[Any], bool] | None
+
+
+def wire_field(check: Check, *, key: str | None = None, pack: Callable[[Any], Any] | None = None,
+               required: bool = True, omit: Callable[[Any], bool] | None = None
+               ) -> dict[str, WireField]:
+    """Field metadata: ``check(value, fieldname)`` returns the checked Python value or raises
+    ``BadMessage``/``LimitExceeded``; ``key`` is the wire name (default: the field's);
+    ``pack`` turns the value into msgpack types (default: as is); ``required=False`` lets a
+    peer leave it out (the field's default applies); ``omit(value)`` true leaves it out."""
+    return {"wire": WireField(key, check, pack if pack is not None else _same, required, omit)}
+
+
+def _same(x: Any) -> Any:
+    return x
+
+
+def _wire_fields(cls: type) -> list[tuple[str, str, WireField]]:
+    """``(attribute, wire key, spec)`` of every field of a derived message dataclass."""
+    out = []
+    for f in fields(cls):
+        spec = f.metadata.get("wire")
+        if not isinstance(spec, WireField):
+            raise TypeError(f"{cls.__name__}.{f.name} has no wire_field metadata")
+        out.append((f.name, spec.key or f.name, spec))
+    return out
+
+
+def message_dict(obj: Any) -> dict[str, Any]:
+    """The wire map of a derived message (without ``v``)."""
+    d: dict[str, Any] = {}
+    for name, key, spec in _wire_fields(type(obj)):
+        val = getattr(obj, name)
+        if spec.omit is not None and spec.omit(val):
+            continue
+        d[key] = spec.pack(val)
+    return d
+
+
+def from_message_dict(cls: type[M], d: Any, where: str = "") -> M:
+    """Check a decoded wire map field by field and build ``cls`` (``where`` prefixes the
+    field names in errors, e.g. ``"verdict."``).
+
+    Raises
+    ------
+    BadMessage, LimitExceeded
+        A missing required or unknown key, or a value that fails its field's check.
+    """
+    if not isinstance(d, dict):
+        raise BadMessage(where.rstrip(".") or "payload", "a map", type(d).__name__)
+    specs = _wire_fields(cls)
+    _keys(d, [key for _, key, spec in specs if spec.required],
+          [key for _, key, spec in specs if not spec.required], prefix=where)
+    return cls(**{name: spec.check(d[key], where + key)
+                  for name, key, spec in specs if key in d})
+
+
+def check_text(max_chars: int, min_chars: int = 0) -> Check:
+    """A check: a string of ``min_chars`` to ``max_chars`` characters."""
+    def check(val: Any, name: str) -> str:
+        return check_str(val, name, max_chars=max_chars, min_chars=min_chars)
+    return check
+
+
+def check_choice(choices: tuple[str, ...], max_chars: int = 32) -> Check:
+    """A check: one of ``choices``."""
+    def check(val: Any, name: str) -> str:
+        val = check_str(val, name, max_chars=max_chars)
+        if val not in choices:
+            raise BadMessage(name, " | ".join(choices), short(val))
+        return val
+    return check
+
+
+def check_count(val: Any, name: str) -> int:
+    """A check: an integer >= 0 (not a bool)."""
+    if type(val) is not int or val < 0:
+        raise BadMessage(name, "an integer >= 0", short(val))
+    return val
+
+
+def check_bool(val: Any, name: str) -> bool:
+    if type(val) is not bool:
+        raise BadMessage(name, "true or false", short(val))
+    return val
+
+
+def check_str_or_nil(val: Any, name: str) -> str | None:
+    if val is not None and not isinstance(val, str):
+        raise BadMessage(name, "a string or nil", short(val))
+    return val
+
+
+def check_int_or_nil(val: Any, name: str) -> int | None:
+    if val is not None and type(val) is not int:
+        raise BadMessage(name, "an integer or nil", short(val))
+    return val
+
+
+def check_number_or_nil(val: Any, name: str) -> float | None:
+    if val is not None and (isinstance(val, bool) or not isinstance(val, (int, float))):
+        raise BadMessage(name, "a number or nil", short(val))
+    return None if val is None else float(val)
+
+
+def check_names(val: Any, name: str) -> tuple[str, ...]:
+    """A check: a list of strings (returned as a tuple)."""
+    if not isinstance(val, list) or not all(isinstance(s, str) for s in val):
+        raise BadMessage(name, "a list of strings", short(val))
+    return tuple(val)
+
+
+def check_map(val: Any, name: str) -> dict[str, Any]:
+    if not isinstance(val, dict):
+        raise BadMessage(name, "a map", type(val).__name__)
+    return val
+
+
+def _is_none(x: Any) -> bool:
+    return x is None
+
+
+def _is_empty(x: Any) -> bool:
+    return not x
+
+
+_NAMES = wire_field(check_names, pack=list)
+
+
+# --------------------------------------------------------------------------------------------
 # Messages
 # --------------------------------------------------------------------------------------------
 
@@ -309,37 +460,22 @@ VERDICT_STATUSES = ("accepted", "rejected", "pending", "retracted", "reinstated"
 class Verdict:
     """What the map did with one constraint (an update): ``status`` (accepted, rejected, ...),
     the gate's ``nis`` over ``dof`` live dimensions against ``threshold`` (None: not gated),
-    ``reason`` (why there was nothing to test, or "trusted"), and the source's ``stamp_ns``."""
+    ``reason`` (why there was nothing to test, or "trusted"), and the source's ``stamp_ns``.
+    Encoded field by field (:func:`message_dict`)."""
 
-    status: str
-    nis: float | None = None
-    dof: int = 0
-    threshold: float | None = None
-    reason: str = ""
-    stamp_ns: int | None = None
+    status: str = field(metadata=wire_field(check_choice(VERDICT_STATUSES, 16)))
+    nis: float | None = field(default=None, metadata=wire_field(check_number_or_nil))
+    dof: int = field(default=0, metadata=wire_field(check_count))
+    threshold: float | None = field(default=None, metadata=wire_field(check_number_or_nil))
+    reason: str = field(default="", metadata=wire_field(check_text(256)))
+    stamp_ns: int | None = field(default=None, metadata=wire_field(check_int_or_nil))
 
     def to_dict(self) -> dict[str, Any]:
-        return {"status": self.status, "nis": self.nis, "dof": self.dof,
-                "threshold": self.threshold, "reason": self.reason, "stamp_ns": self.stamp_ns}
+        return message_dict(self)
 
     @classmethod
     def from_dict(cls, d: Any) -> Verdict:
-        if not isinstance(d, dict):
-            raise BadMessage("verdict", "a map", type(d).__name__)
-        _keys(d, ("status", "nis", "dof", "threshold", "reason", "stamp_ns"), ())
-        status = _str(d, "status", max_chars=16)
-        if status not in VERDICT_STATUSES:
-            raise BadMessage("verdict.status", " | ".join(VERDICT_STATUSES), short(status))
-        for key in ("nis", "threshold"):
-            if d[key] is not None and not isinstance(d[key], (int, float)):
-                raise BadMessage(f"verdict.{key}", "a number or nil", short(d[key]))
-        stamp = d["stamp_ns"]
-        if stamp is not None and type(stamp) is not int:
-            raise BadMessage("verdict.stamp_ns", "an integer or nil", short(stamp))
-        return cls(status=status, nis=None if d["nis"] is None else float(d["nis"]),
-                   dof=_int(d, "dof"),
-                   threshold=None if d["threshold"] is None else float(d["threshold"]),
-                   reason=_str(d, "reason", max_chars=256, default=""), stamp_ns=stamp)
+        return from_message_dict(cls, d, "verdict.")
 
 
 @dataclass(frozen=True)
@@ -353,16 +489,18 @@ class Ack:
     the Zenoh id of the server that applied it (``""`` from an older server).
     """
 
-    request_id: str
-    seq: int
-    op: str
-    kind: str
-    component: str | None
-    frames_added: tuple[str, ...] = ()
-    frames_removed: tuple[str, ...] = ()
-    duplicate: bool = False
-    server: str = ""
-    verdict: Verdict | None = None
+    request_id: str = field(metadata=wire_field(check_text(MAX_ID_CHARS), key="id"))
+    seq: int = field(metadata=wire_field(check_count))
+    op: str = field(metadata=wire_field(check_text(32)))
+    kind: str = field(metadata=wire_field(check_text(32)))
+    component: str | None = field(metadata=wire_field(check_str_or_nil))
+    frames_added: tuple[str, ...] = field(default=(), metadata=_NAMES)
+    frames_removed: tuple[str, ...] = field(default=(), metadata=_NAMES)
+    duplicate: bool = field(default=False, metadata=wire_field(check_bool))
+    server: str = field(default="", metadata=wire_field(check_text(MAX_ID_CHARS),
+                                                        required=False))
+    verdict: Verdict | None = field(default=None, metadata=wire_field(
+        lambda v, name: Verdict.from_dict(v), pack=message_dict, required=False, omit=_is_none))
 
 
 @dataclass(frozen=True)
@@ -409,17 +547,19 @@ class SubmapReply:
 
 @dataclass(frozen=True)
 class Event:
-    """One applied operation, as published on ``<prefix>/<map>/events``."""
+    """One applied operation, as published on ``<prefix>/<map>/events`` (encoded field by
+    field, :func:`message_dict`)."""
 
-    map: str
-    seq: int
-    op: str
-    kind: str
-    frames: tuple[str, ...]
-    component: str | None
-    time_ns: int
-    digest: str | None = None
-    extra: dict[str, Any] = field(default_factory=dict)
+    map: str = field(metadata=wire_field(check_text(64)))
+    seq: int = field(metadata=wire_field(check_count))
+    op: str = field(metadata=wire_field(check_text(32)))
+    kind: str = field(metadata=wire_field(check_text(32)))
+    frames: tuple[str, ...] = field(metadata=_NAMES)
+    component: str | None = field(metadata=wire_field(check_str_or_nil))
+    time_ns: int = field(metadata=wire_field(check_count))
+    digest: str | None = field(default=None, metadata=wire_field(check_str_or_nil))
+    extra: dict[str, Any] = field(default_factory=dict, metadata=wire_field(
+        check_map, pack=dict, required=False, omit=_is_empty))
 
 
 # --------------------------------------------------------------------------------------------
@@ -482,28 +622,33 @@ def check_version(obj: Mapping[str, Any]) -> None:
         raise UnsupportedVersion(v, VERSION)
 
 
-def _keys(obj: Mapping[str, Any], required: Sequence[str], optional: Sequence[str] = ()) -> None:
+def _keys(obj: Mapping[str, Any], required: Sequence[str], optional: Sequence[str] = (), *,
+          prefix: str = "") -> None:
     for k in required:
         if k not in obj:
-            raise BadMessage(k, "a required field", "missing")
+            raise BadMessage(prefix + k, "a required field", "missing")
     allowed = set(required) | set(optional) | {"v"}
     for k in obj:
         if k not in allowed:
-            raise BadMessage(str(k)[:40], "no unknown fields", "an unknown field")
+            raise BadMessage(prefix + str(k)[:40], "no unknown fields", "an unknown field")
+
+
+def check_str(val: Any, name: str, *, max_chars: int, min_chars: int = 0) -> str:
+    """``val`` if it is a string of ``min_chars`` to ``max_chars`` characters, else raise."""
+    if not isinstance(val, str):
+        raise BadMessage(name, "a string", type(val).__name__)
+    if len(val) > max_chars:
+        raise LimitExceeded(f"{name} length", len(val), max_chars)
+    if len(val) < min_chars:
+        raise BadMessage(name, f"at least {min_chars} characters", len(val))
+    return val
 
 
 def _str(obj: Mapping[str, Any], key: str, *, max_chars: int, default: str | None = None,
          min_chars: int = 0) -> str:
     if key not in obj and default is not None:
         return default
-    val = obj.get(key)
-    if not isinstance(val, str):
-        raise BadMessage(key, "a string", type(val).__name__)
-    if len(val) > max_chars:
-        raise LimitExceeded(f"{key} length", len(val), max_chars)
-    if len(val) < min_chars:
-        raise BadMessage(key, f"at least {min_chars} characters", len(val))
-    return val
+    return check_str(obj.get(key), key, max_chars=max_chars, min_chars=min_chars)
 
 
 def _int(obj: Mapping[str, Any], key: str, *, lo: int = 0) -> int:
@@ -788,34 +933,11 @@ def decode_submap_request(payload: bytes, n_samples: int | None, *,
 # --------------------------------------------------------------------------------------------
 
 def encode_ack(ack: Ack) -> bytes:
-    return pack({"v": VERSION, "id": ack.request_id, "seq": ack.seq, "op": ack.op,
-                 "kind": ack.kind, "component": ack.component,
-                 "frames_added": list(ack.frames_added),
-                 "frames_removed": list(ack.frames_removed), "duplicate": ack.duplicate,
-                 "server": ack.server,
-                 **({"verdict": ack.verdict.to_dict()} if ack.verdict is not None else {})})
-
-
-def _str_list(obj: Any, fieldname: str) -> tuple[str, ...]:
-    if not isinstance(obj, list) or not all(isinstance(s, str) for s in obj):
-        raise BadMessage(fieldname, "a list of strings", short(obj))
-    return tuple(obj)
+    return pack({"v": VERSION, **message_dict(ack)})
 
 
 def decode_ack(payload: bytes) -> Ack:
-    d = unpack(payload, max_bytes=MAX_REPLY_BYTES)
-    _keys(d, ("id", "seq", "op", "kind", "component", "frames_added", "frames_removed",
-              "duplicate"), ("server", "verdict"))
-    comp = d["component"]
-    if comp is not None and not isinstance(comp, str):
-        raise BadMessage("component", "a frame name or nil", short(comp))
-    return Ack(request_id=_str(d, "id", max_chars=MAX_ID_CHARS), seq=_int(d, "seq"),
-               op=_str(d, "op", max_chars=32), kind=_str(d, "kind", max_chars=32),
-               component=comp, frames_added=_str_list(d["frames_added"], "frames_added"),
-               frames_removed=_str_list(d["frames_removed"], "frames_removed"),
-               duplicate=bool(d["duplicate"]),
-               server=_str(d, "server", max_chars=MAX_ID_CHARS, default=""),
-               verdict=Verdict.from_dict(d["verdict"]) if "verdict" in d else None)
+    return from_message_dict(Ack, unpack(payload, max_bytes=MAX_REPLY_BYTES))
 
 
 def encode_query_reply(r: QueryReply) -> bytes:
@@ -868,8 +990,8 @@ def decode_info_reply(payload: bytes) -> MapInfo:
     return MapInfo(
         map=_str(d, "map", max_chars=64), n_samples=_int(d, "n_samples"),
         options=dict(d["options"]), seq=_int(d, "seq"), digest=_str(d, "digest", max_chars=128),
-        frames=_str_list(d["frames"], "frames"),
-        components={str(k): _str_list(v, "components") for k, v in d["components"].items()},
+        frames=check_names(d["frames"], "frames"),
+        components={str(k): check_names(v, "components") for k, v in d["components"].items()},
         rejected=_int(d, "rejected"),
         rejected_by_error={str(k): int(v) for k, v in d["rejected_by_error"].items()},
         server_id=_str(d, "server_id", max_chars=256),
@@ -924,28 +1046,8 @@ def decode_error(payload: bytes) -> McsmError:
 
 
 def encode_event(ev: Event) -> bytes:
-    d: dict[str, Any] = {"v": VERSION, "map": ev.map, "seq": ev.seq, "op": ev.op,
-                         "kind": ev.kind, "frames": list(ev.frames), "component": ev.component,
-                         "time_ns": ev.time_ns, "digest": ev.digest}
-    if ev.extra:
-        d["extra"] = dict(ev.extra)
-    return pack(d)
+    return pack({"v": VERSION, **message_dict(ev)})
 
 
 def decode_event(payload: bytes) -> Event:
-    d = unpack(payload, max_bytes=MAX_PAYLOAD_BYTES)
-    _keys(d, ("map", "seq", "op", "kind", "frames", "component", "time_ns", "digest"),
-          ("extra",))
-    dig = d["digest"]
-    if dig is not None and not isinstance(dig, str):
-        raise BadMessage("digest", "a hex string or nil", short(dig))
-    comp = d["component"]
-    if comp is not None and not isinstance(comp, str):
-        raise BadMessage("component", "a frame name or nil", short(comp))
-    extra = d.get("extra", {})
-    if not isinstance(extra, dict):
-        raise BadMessage("extra", "a map", type(extra).__name__)
-    return Event(map=_str(d, "map", max_chars=64), seq=_int(d, "seq"),
-                 op=_str(d, "op", max_chars=32), kind=_str(d, "kind", max_chars=32),
-                 frames=_str_list(d["frames"], "frames"), component=comp,
-                 time_ns=_int(d, "time_ns"), digest=dig, extra=extra)
+    return from_message_dict(Event, unpack(payload, max_bytes=MAX_PAYLOAD_BYTES))

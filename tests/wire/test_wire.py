@@ -246,3 +246,87 @@ def test_decoders_only_raise_typed_errors(payload: bytes, op: str) -> None:
         assert exc.to_dict()["error"] == type(exc).__name__
     else:
         assert dataclasses.is_dataclass(msg)
+
+
+def _good_ack() -> dict[str, Any]:
+    verdict = wire.Verdict("accepted", 3.5, 6, 16.8, "", 17)
+    ack = wire.Ack("r-1", 4, "update", "loop_closure", "w", ("a",), (), False, "zid", verdict)
+    d: dict[str, Any] = msgpack.unpackb(wire.encode_ack(ack))
+    assert wire.decode_ack(wire.encode_ack(ack)) == ack
+    return d
+
+
+@pytest.mark.parametrize("change,error,fieldname", [
+    ({"seq": None}, BadMessage, "seq"),
+    ({"seq": -1}, BadMessage, "seq"),
+    ({"seq": True}, BadMessage, "seq"),
+    ({"duplicate": 1}, BadMessage, "duplicate"),
+    ({"frames_added": "a"}, BadMessage, "frames_added"),
+    ({"frames_removed": [1]}, BadMessage, "frames_removed"),
+    ({"component": 5}, BadMessage, "component"),
+    ({"id": "x" * 129}, LimitExceeded, "id length"),
+    ({"server": "x" * 129}, LimitExceeded, "server length"),
+    ({"op": b"update"}, BadMessage, "op"),
+    ({"extra": 1}, BadMessage, "extra"),
+    ({"verdict": []}, BadMessage, "verdict"),
+    ({"verdict": {"status": "maybe", "nis": None, "dof": 0, "threshold": None, "reason": "",
+                  "stamp_ns": None}}, BadMessage, "verdict.status"),
+    ({"verdict": {"status": "accepted"}}, BadMessage, "verdict.nis"),
+    ({"verdict": {"status": "accepted", "nis": "1", "dof": 0, "threshold": None,
+                  "reason": "", "stamp_ns": None}}, BadMessage, "verdict.nis"),
+    ({"verdict": {"status": "accepted", "nis": None, "dof": 0, "threshold": None,
+                  "reason": "", "stamp_ns": 1.5}}, BadMessage, "verdict.stamp_ns"),
+    ({"verdict": {"status": "accepted", "nis": None, "dof": 0, "threshold": None,
+                  "reason": "", "stamp_ns": None, "x": 1}}, BadMessage, "verdict.x"),
+])
+def test_derived_ack_decoder_keeps_every_check(change: dict[str, Any], error: type,
+                                               fieldname: str) -> None:
+    """The ack is decoded field by field from its dataclass; each field's check still refuses
+    a hostile value with a typed error naming the field (None in ``change``: key left out)."""
+    d = {**_good_ack(), **change}
+    d = {k: v for k, v in d.items() if v is not None or k == "component"}
+    with pytest.raises(error) as info:
+        wire.decode_ack(msgpack.packb(d))
+    assert info.value.to_dict()["fields"].get("field", info.value.to_dict()["fields"]
+                                               .get("what")) == fieldname
+
+
+def test_derived_optional_fields_may_be_left_out_by_older_peers() -> None:
+    d = _good_ack()
+    del d["server"], d["verdict"]
+    ack = wire.decode_ack(msgpack.packb(d))
+    assert ack.server == "" and ack.verdict is None
+    ev = wire.Event("m", 1, "update", "join", ("w", "r"), "w", 5, None)
+    assert "extra" not in msgpack.unpackb(wire.encode_event(ev))
+    assert wire.decode_event(wire.encode_event(ev)) == ev
+    with pytest.raises(BadMessage, match="digest"):
+        wire.decode_event(msgpack.packb({**msgpack.unpackb(wire.encode_event(ev)),
+                                         "digest": 5}))
+
+
+@pytest.mark.parametrize("cls,schema", [(wire.Ack, "ack.json"), (wire.Event, "event.json")])
+def test_derived_messages_and_their_schemas_name_the_same_fields(cls: type,
+                                                                 schema: str) -> None:
+    """A field added to a derived message must be added to its schema too (and the reverse)."""
+    keys = {spec.key or f.name for f in dataclasses.fields(cls)
+            for spec in [f.metadata["wire"]]}
+    props = set(_schema(schema)["properties"]) - {"v"}
+    assert keys == props
+    required = {spec.key or f.name for f in dataclasses.fields(cls)
+                for spec in [f.metadata["wire"]] if spec.required}
+    assert required == set(_schema(schema)["required"]) - {"v"}
+
+
+@settings(deadline=None, max_examples=150)
+@given(payload=_values.map(msgpack.packb) | st.fixed_dictionaries(
+    {"v": st.just(1)}, optional={k: _values for k in (
+        "id", "seq", "op", "kind", "component", "frames_added", "frames_removed", "duplicate",
+        "server", "verdict", "map", "frames", "time_ns", "digest", "extra")}).map(msgpack.packb))
+def test_reply_decoders_only_raise_typed_errors(payload: bytes) -> None:
+    for decode in (wire.decode_ack, wire.decode_event):
+        try:
+            msg = decode(payload)
+        except McsmError as exc:
+            assert exc.to_dict()["error"] == type(exc).__name__
+        else:
+            assert dataclasses.is_dataclass(msg)
