@@ -33,7 +33,7 @@ from collections import Counter
 from pathlib import Path
 from typing import Any
 
-from mcsm import wire
+from mcsm import ops, wire
 from mcsm.errors import McsmError
 
 log = logging.getLogger("mcsm")
@@ -629,13 +629,12 @@ def _summarise(obj: Any, with_samples: bool) -> Any:
 
 
 def _input_json(op: str, req: Any, with_samples: bool) -> dict[str, Any]:
-    if op == "update":
-        return {"a": req.a, "b": req.b, "samples": _summarise(req.samples, with_samples)}
-    if op == "remove":
-        return {"frame": req.frame}
-    sub = req.submap
-    return {"root": sub.root, "frames": list(sub.frames), "is_point": list(sub.is_point),
-            "edges": [_summarise(e, with_samples) for e in sub.edges[1:]]}
+    out = ops.get(op).describe(req)
+    if isinstance(req, wire.UpdateRequest):
+        out["samples"] = _summarise(req.samples, with_samples)
+    elif isinstance(req, wire.SubmapImportRequest):
+        out["edges"] = [_summarise(e, with_samples) for e in req.submap.edges[1:]]
+    return out
 
 
 def cat_cmd(args: argparse.Namespace) -> int:
@@ -687,14 +686,16 @@ def _cat_text(line: dict[str, Any]) -> str:
     head = f"{line['map']} seq {line['seq']} {line['op']}"
     if "error" in line:
         return f"{head} undecodable: {line['error']}"
-    if line["op"] == "update":
+    if "samples" in line:
         s = line["samples"]
         mean = " ".join(f"{v:.4g}" for v in s.get("mean", []))
         body = f"{line['a']} -> {line['b']} N={s['n']}" + (f" mean [{mean}]" if mean else "")
-    elif line["op"] == "remove":
+    elif "frame" in line:
         body = line["frame"]
+    elif "target" in line:
+        body = f"of {line['target']}"
     else:
-        body = f"{len(line['frames'])} frames"
+        body = f"{len(line.get('frames', []))} frames"
     return f"{head} {body} (sender {line['sender']}, id {line['id']})"
 
 

@@ -112,6 +112,8 @@ class Operation:
     event_extra: Callable[[MapState, Any], dict[str, Any]] = _no_extra
     answer: Callable[[Context, MapState, Any], bytes] | None = None
     """A read-only operation's reply payload (raises ``McsmError`` to refuse)."""
+    describe: Callable[[Any], dict[str, Any]] = lambda req: {}
+    """The request's names as JSON-able fields (``mcsm cat``; arrays are left to the caller)."""
 
     @property
     def changes_state(self) -> bool:
@@ -252,20 +254,26 @@ _TABLE = (
               wire.decode_ack, namespaced=True, check_namespace=_update_check,
               check_namespace_map=_update_check_map, topic="/mcsm/in/update",
               change=_update_change, retractable=True, fingerprint_parts=_update_parts,
-              event_frames=lambda req, ack: (req.a, req.b)),
+              event_frames=lambda req, ack: (req.a, req.b),
+              describe=lambda req: {"a": req.a, "b": req.b}),
     Operation("remove", "remove", wire.RemoveRequest, _no_n(wire.decode_remove),
               wire.encode_remove, wire.decode_ack, namespaced=True,
               check_namespace=_remove_check, topic="/mcsm/in/remove", change=_remove_change,
-              fingerprint_parts=lambda req: [f"\0{req.frame}".encode()]),
+              fingerprint_parts=lambda req: [f"\0{req.frame}".encode()],
+              describe=lambda req: {"frame": req.frame}),
     Operation("import", "submap", wire.SubmapImportRequest, _decode_submap,
               wire.encode_submap_import, wire.decode_ack, topic="/mcsm/in/submap_import",
-              change=_import_change, fingerprint_parts=_import_parts),
+              change=_import_change, fingerprint_parts=_import_parts,
+              describe=lambda req: {"root": req.submap.root, "frames": list(req.submap.frames),
+                                    "is_point": list(req.submap.is_point)}),
     Operation("retract", "retract", wire.RetractRequest, _no_n(wire.decode_retract),
               wire.encode_retract, wire.decode_ack, topic="/mcsm/in/retract", retract=True,
-              fingerprint_parts=_target_parts, event_extra=_retract_extra),
+              fingerprint_parts=_target_parts, event_extra=_retract_extra,
+              describe=lambda req: {"target": req.target}),
     Operation("reinstate", "reinstate", wire.RetractRequest, _no_n(wire.decode_retract),
               wire.encode_retract, wire.decode_ack, topic="/mcsm/in/reinstate", retract=False,
-              fingerprint_parts=_target_parts, event_extra=_retract_extra),
+              fingerprint_parts=_target_parts, event_extra=_retract_extra,
+              describe=lambda req: {"target": req.target}),
     Operation("verdict", "verdict", wire.VerdictRequest, _no_n(wire.decode_verdict_request),
               wire.encode_verdict_request, wire.decode_ack, answer=_verdict_answer),
     Operation("query", "query", wire.QueryRequest, _no_n(wire.decode_query), wire.encode_query,

@@ -499,8 +499,8 @@ def test_client_sim_refuses_an_unwritable_output_before_running(tmp_path: Path) 
         assert "iteration" not in r.stdout  # refused before the run started
 
 
-def test_cat_shows_removes_and_imports(tmp_path: Path,
-                                       capsys: pytest.CaptureFixture[str]) -> None:
+def test_cat_shows_removes_imports_retracts_and_reinstates(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     rng = np.random.default_rng(8809)
     other = StochasticMap(N)
     other.update("q0", "q1", noisy_at(rng, N, [1, 0, 0]))
@@ -508,7 +508,10 @@ def test_cat_shows_removes_and_imports(tmp_path: Path,
     sub = other.export_component("q0")
     payloads = [("update", wire.encode_update("u1", "a", "b", noisy_at(rng, N, [1, 0, 0]))),
                 ("remove", wire.encode_remove("r1", "b")),
-                ("import", wire.encode_submap_import("i1", sub))]
+                ("import", wire.encode_submap_import("i1", sub)),
+                ("update", wire.encode_update("u2", "a", "c", noisy_at(rng, N, [0, 1, 0]))),
+                ("retract", wire.encode_retract("t1", "u2")),
+                ("reinstate", wire.encode_retract("t2", "u2"))]
     path = tmp_path / "r.mcap"
     rec = Recorder(path)
     st = MapState("default", StochasticMap(N))
@@ -519,11 +522,16 @@ def test_cat_shows_removes_and_imports(tmp_path: Path,
     rec.close()
     assert mcsm_main(["cat", str(path), "--json"]) == EXIT_OK
     lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
-    assert [x["op"] for x in lines] == ["update", "remove", "import"]
+    assert [x["op"] for x in lines] == ["update", "remove", "import", "update", "retract",
+                                        "reinstate"]
     assert lines[1]["frame"] == "b"
+    assert lines[4]["target"] == "u2" and lines[5]["target"] == "u2"
+    assert all("error" not in x for x in lines)
     imp = lines[2]
     assert imp["root"] == "q0" and imp["frames"] == ["q0", "q1", "q2"]
     assert len(imp["edges"]) == 2 and np.asarray(imp["edges"][1]["cov"]).shape == (6, 6)
     assert mcsm_main(["cat", str(path)]) == EXIT_OK
     text = capsys.readouterr().out.splitlines()
     assert text[1].startswith("default seq 2 remove b") and "3 frames" in text[2]
+    assert text[4].startswith("default seq 5 retract of u2")
+    assert text[5].startswith("default seq 6 reinstate of u2")
