@@ -24,7 +24,7 @@ run: $(STAMP)
 
 lint: $(STAMP)
 	$(PY) -m ruff check service clients tests benchmarks experiments
-	$(PY) -m mypy service/mcsm clients/mcsm_client
+	$(PY) -m mypy --strict service/mcsm clients/mcsm_client
 
 test: lint
 	$(PY) -m pytest -q

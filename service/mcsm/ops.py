@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from mcsm import wire
-from mcsm.core.names import namespace_of
+from mcsm.core.names import is_namespace, namespace_of
 from mcsm.errors import BadMessage, Forbidden, McsmError, UnknownFrame
 
 if TYPE_CHECKING:
@@ -327,7 +327,7 @@ def route(keys: wire.Keys, key: str) -> tuple[str, str]:
     if served is not None:
         if not sep:
             return leaf, ""
-        if served[0].namespaced and wire.is_namespace(ns):
+        if served[0].namespaced and is_namespace(ns):
             return leaf, ns
     plain = [lf for lf, o in BY_LEAF.items() if not o[0].namespaced]
     spaced = [lf for lf, o in BY_LEAF.items() if o[0].namespaced]

@@ -29,7 +29,7 @@ import numpy as np
 import numpy.typing as npt
 
 from mcsm.core.at import QUAT_NORM_TOL as _CORE_QUAT_NORM_TOL
-from mcsm.core.names import FRAME_RULE, is_frame_name
+from mcsm.core.names import FRAME_RULE, NAMESPACE_RULE, is_frame_name, is_namespace
 from mcsm.errors import (
     BadMessage,
     InvalidSamples,
@@ -169,18 +169,10 @@ class Keys:
         return ops.route(self, key)
 
 
-_NS_RE = re.compile(r"[A-Za-z0-9_.:+-]{1,128}")
-
-
-def is_namespace(namespace: Any) -> bool:
-    """Whether ``namespace`` is one frame-name segment of ``[A-Za-z0-9_.:+-]`` (``robot1``)."""
-    return isinstance(namespace, str) and _NS_RE.fullmatch(namespace) is not None
-
-
 def check_namespace(namespace: str) -> str:
     """Return ``namespace`` if it is a valid frame-name segment (``robot1``), else raise."""
     if not is_namespace(namespace):
-        raise BadMessage("namespace", "one frame-name segment of [A-Za-z0-9_.:+-]",
+        raise BadMessage("namespace", NAMESPACE_RULE,
                          short(namespace))
     return namespace
 
@@ -291,10 +283,10 @@ def check_text(max_chars: int, min_chars: int = 0) -> Check:
 def check_choice(choices: tuple[str, ...], max_chars: int = 32) -> Check:
     """A check: one of ``choices``."""
     def check(val: Any, name: str) -> str:
-        val = check_str(val, name, max_chars=max_chars)
-        if val not in choices:
-            raise BadMessage(name, " | ".join(choices), short(val))
-        return val
+        text = check_str(val, name, max_chars=max_chars)
+        if text not in choices:
+            raise BadMessage(name, " | ".join(choices), short(text))
+        return text
     return check
 
 

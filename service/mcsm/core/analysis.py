@@ -58,7 +58,8 @@ def denkf(yc: Array, y_mean: Array, z: Array) -> Array:
     _, _, s = _moments(yc, z)
     d, v, inv, _ = _pinv_parts(s)
     s_pinv = ((v * inv) @ v.T) * d[:, None] * d[None, :]
-    return (z.mean(axis=0) - y_mean)[None, :] @ s_pinv - 0.5 * yc @ s_pinv
+    out: Array = (z.mean(axis=0) - y_mean)[None, :] @ s_pinv - 0.5 * yc @ s_pinv
+    return out
 
 
 def ensrf(yc: Array, y_mean: Array, z: Array) -> Array:
@@ -72,7 +73,8 @@ def ensrf(yc: Array, y_mean: Array, z: Array) -> Array:
     r_sqrt = sym_sqrt(r * d[:, None] * d[None, :])
     dd = s_isqrt @ np.linalg.pinv(s_sqrt + r_sqrt, rcond=1e-12, hermitian=True)
     gain_tilde = dd * d[:, None] * d[None, :]  # back to the original coordinates: D (.) D
-    return (z.mean(axis=0) - y_mean)[None, :] @ s_pinv - yc @ gain_tilde.T
+    out: Array = (z.mean(axis=0) - y_mean)[None, :] @ s_pinv - yc @ gain_tilde.T
+    return out
 
 
 RULES: dict[str, Rule] = {"ensrf": ensrf, "denkf": denkf, "enkf": enkf}
@@ -168,4 +170,5 @@ def endpoint_cross_covariance(c_xp: Array, var_x: Array, lam: Array, c_py: Array
         # σ²_e = 0 (fully explained) gives t² = inf: factor 1; β = 0 gives 0: no change
         beta = beta * np.clip(np.nan_to_num(factor, nan=0.0), 0.0, 1.0)
         c_py = c_py * _shrink_factor(c_py, lam[:, None] * var_y[None, :], n, c)
-    return np.einsum("mkd,kp->mpd", beta, c_py)
+    out: Array = np.einsum("mkd,kp->mpd", beta, c_py)
+    return out

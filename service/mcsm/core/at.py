@@ -155,7 +155,8 @@ def sample_cov(a: Array, b: Array | None = None) -> Array:
     ac = a - a.mean(axis=-2, keepdims=True)
     bc = ac if b is None else b - b.mean(axis=-2, keepdims=True)
     n = a.shape[-2]
-    return np.swapaxes(ac, -1, -2) @ bc / (n - 1)
+    out: Array = np.swapaxes(ac, -1, -2) @ bc / (n - 1)
+    return out
 
 
 def scaled_eigh(s: Array) -> tuple[Array, Array, Array]:
@@ -190,7 +191,8 @@ def scaled_pinv(s: Array) -> Array:
 def sym_sqrt(s: Array) -> Array:
     """Symmetric PSD square root ``(..., p, p)`` (negative eigenvalues clipped to 0)."""
     lam, v = np.linalg.eigh(0.5 * (s + np.swapaxes(s, -1, -2)))
-    return (v * np.sqrt(np.clip(lam, 0.0, None))[..., None, :]) @ np.swapaxes(v, -1, -2)
+    out: Array = (v * np.sqrt(np.clip(lam, 0.0, None))[..., None, :]) @ np.swapaxes(v, -1, -2)
+    return out
 
 
 # --------------------------------------------------------------------------- merge spaces
@@ -289,7 +291,8 @@ _DELTA = np.arange(7, 13)
 def _lmul_rows(q: Array) -> Array:
     """Left-multiplication matrices ``L(q)`` (``qmul(q, p) = L(q) p``): ``(..., 4)`` ->
     ``(..., 4, 4)``."""
-    return q[..., L_INDEX] * L_SIGN
+    out: Array = q[..., L_INDEX] * L_SIGN
+    return out
 
 
 def _planar_at(x: Array, minus_identity: bool = False) -> tuple[Array, Array]:

@@ -22,8 +22,8 @@ def _one_set_over_many(small: Array, big: Array) -> bool:
     if small.ndim < 2 or big.ndim < 3:
         return False
     n = small.shape[-2]
-    return small.size == n * small.shape[-1] and big.shape[-2] == n and \
-        big.size >= 16 * n * big.shape[-1]
+    return bool(small.size == n * small.shape[-1] and big.shape[-2] == n
+                and big.size >= 16 * n * big.shape[-1])
 
 
 # qmul(p, q) = L(p) q with L(p)[i, j] = L_SIGN[i, j] * p[L_INDEX[i, j]]
@@ -42,12 +42,14 @@ def qmul(p: Array, q: Array) -> Array:
             p.shape[:-2] == q.shape[:-2]:
         # one quaternion per sample set (a per-edge reference) times all its samples
         left = p.reshape(-1, 4)[:, L_INDEX] * L_SIGN  # (M, 4, 4)
-        return np.einsum("mij,mnj->mni", left, q.reshape(left.shape[0], -1, 4),
-                         optimize=True).reshape(q.shape)
+        per_set: Array = np.einsum("mij,mnj->mni", left, q.reshape(left.shape[0], -1, 4),
+                                   optimize=True).reshape(q.shape)
+        return per_set
     if _one_set_over_many(p, q):
         left = p.reshape(-1, 4)[:, L_INDEX] * L_SIGN  # (N, 4, 4)
-        return np.einsum("nij,mnj->mni", left, q.reshape(-1, p.shape[-2], 4),
-                         optimize=True).reshape(q.shape)
+        over_many: Array = np.einsum("nij,mnj->mni", left, q.reshape(-1, p.shape[-2], 4),
+                                     optimize=True).reshape(q.shape)
+        return over_many
     pw, px, py, pz = p[..., 0], p[..., 1], p[..., 2], p[..., 3]
     qw, qx, qy, qz = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     return np.stack(
@@ -98,8 +100,9 @@ def qrot(q: Array, v: Array) -> Array:
     """
     if _one_set_over_many(q, v):
         r = rotation_matrix(q.reshape(-1, 4))  # (N, 3, 3)
-        return np.einsum("nij,mnj->mni", r, v.reshape(-1, q.shape[-2], 3),
-                         optimize=True).reshape(v.shape)
+        out: Array = np.einsum("nij,mnj->mni", r, v.reshape(-1, q.shape[-2], 3),
+                               optimize=True).reshape(v.shape)
+        return out
     w = q[..., :1]
     u = q[..., 1:]
     t = 2.0 * _cross(u, v)
@@ -109,7 +112,8 @@ def qrot(q: Array, v: Array) -> Array:
 def qnormalize(q: Array) -> Array:
     """Scale to unit norm. A zero quaternion gives NaN (callers check finiteness)."""
     with np.errstate(invalid="ignore", divide="ignore"):
-        return q / np.linalg.norm(q, axis=-1, keepdims=True)
+        out: Array = q / np.linalg.norm(q, axis=-1, keepdims=True)
+        return out
 
 
 def align_hemisphere(q: Array, ref: Array) -> Array:
@@ -140,7 +144,8 @@ def qlog(q: Array) -> Array:
         big = 2.0 * np.arctan2(n, w) / np.where(small, 1.0, n)
     # series of 2 atan(n/w)/n for small n: 2/w (1 - n²/(3 w²))
     series = 2.0 / w * (1.0 - n * n / (3.0 * w * w))
-    return u * np.where(small, series, big)[..., None]
+    out: Array = u * np.where(small, series, big)[..., None]
+    return out
 
 
 def qexp(w: Array) -> Array:

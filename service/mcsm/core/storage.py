@@ -84,7 +84,8 @@ class Component:
 
     def edge_rows(self, i: int) -> Array:
         """Edge root→frame ``i`` as rows ``(7, N)``, a view (do not write)."""
-        return self._buf[i]
+        out: Array = self._buf[i]
+        return out
 
     def edge(self, i: int) -> Array:
         """Edge root→frame ``i`` as ``(N, 7)`` (a copy)."""
