@@ -15,36 +15,15 @@ from __future__ import annotations
 import argparse
 import multiprocessing as mp
 import os
-import signal
-import socket
-import subprocess
-import sys
 import tempfile
 import time
 
 import numpy as np
+from mcsm_client.process import McsmProcess, loopback_endpoint
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def start(args: list[str], word: str, cwd: str) -> subprocess.Popen[str]:
-    proc = subprocess.Popen([sys.executable, "-m", "mcsm.cli", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.DEVNULL, text=True, cwd=cwd,
-                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
-    assert proc.stdout is not None
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        line = proc.stdout.readline()
-        if word in line:
-            return proc
-        if not line and proc.poll() is not None:
-            break
-    proc.kill()
-    raise RuntimeError(f"{args[0]} did not start")
+def start(args: list[str], word: str, cwd: str) -> McsmProcess:
+    return McsmProcess(args, ready=word, cwd=cwd).start()
 
 
 def client(endpoint: str, map_name: str, n: int, updates: int, seed: int,
@@ -75,17 +54,17 @@ def client(endpoint: str, map_name: str, n: int, updates: int, seed: int,
 
 def run(k_servers: int, n: int, updates: int, routed: bool) -> tuple[float, float, float]:
     with tempfile.TemporaryDirectory() as tmp:
-        procs: list[subprocess.Popen[str]] = []
+        procs: list[McsmProcess] = []
         try:
             if routed:
-                ep = f"tcp/127.0.0.1:{free_port()}"
+                ep = loopback_endpoint()
                 procs.append(start(["router", "--listen", ep], "routing on", tmp))
                 for j in range(k_servers):
                     procs.append(start(["serve", "--connect", ep, "--map", f"m{j}",
                                         "--samples", str(n), "--record", f"{tmp}/m{j}.mcap",
                                         "--log-level", "WARNING"], "listening on", tmp))
             else:
-                ep = f"tcp/127.0.0.1:{free_port()}"
+                ep = loopback_endpoint()
                 procs.append(start(["serve", "--listen", ep, "--map", "m0", "--samples",
                                     str(n), "--record", f"{tmp}/m0.mcap", "--log-level",
                                     "WARNING"], "listening on", tmp))
@@ -101,11 +80,7 @@ def run(k_servers: int, n: int, updates: int, routed: bool) -> tuple[float, floa
                 p.join(timeout=60)
         finally:
             for p_ in procs[::-1]:
-                p_.send_signal(signal.SIGINT)
-                try:
-                    p_.wait(timeout=30)
-                except subprocess.TimeoutExpired:
-                    p_.kill()
+                p_.stop(timeout_s=30)
     lat = np.concatenate([r[1] for r in results])
     busy = max(r[0] for r in results)
     del wall

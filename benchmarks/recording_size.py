@@ -40,20 +40,19 @@ from service_throughput import (  # noqa: E402
     send,
     small_map_ops,
     start_server,
-    stop_server,
 )
 
 
 def record_sim(work: Path, n: int, iterations: int, layout: str = "indexed",
                name: str = "sim") -> Path:
-    proc, ep, rec = start_server(work, n, name, layout)
+    server = start_server(work, n, name, layout)
     try:
-        subprocess.run([sys.executable, "-m", "mcsm_client.cli", "sim", "--connect", ep,
-                        "--iterations", str(iterations), "--json"], check=True,
+        subprocess.run([sys.executable, "-m", "mcsm_client.cli", "sim", "--connect",
+                        server.endpoint, "--iterations", str(iterations), "--json"], check=True,
                        capture_output=True, timeout=3600)
     finally:
-        stop_server(proc)
-    return rec
+        server.stop(timeout_s=60)
+    return server.record
 
 
 def record_3d(work: Path, n: int, steps: int, layout: str = "indexed",
@@ -61,14 +60,14 @@ def record_3d(work: Path, n: int, steps: int, layout: str = "indexed",
     from mcsm_client.client import MapClient
 
     setup, ops = small_map_ops(np.random.default_rng(7), n, steps)
-    proc, ep, rec = start_server(work, n, name, layout)
+    server = start_server(work, n, name, layout)
     try:
-        with MapClient(connect=ep, timeout_s=60) as c:
+        with MapClient(connect=server.endpoint, timeout_s=60) as c:
             for op in setup + ops:
                 send(c, op)
     finally:
-        stop_server(proc)
-    return rec
+        server.stop(timeout_s=60)
+    return server.record
 
 
 def shuffle_planes(record: dict[str, Any]) -> tuple[bytes, bytes]:

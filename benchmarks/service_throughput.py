@@ -31,14 +31,8 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import queue
-import signal
-import socket
 import statistics
-import subprocess
-import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -48,6 +42,7 @@ from mcsm import StochasticMap
 from mcsm.recording import decode_input, replay
 from mcsm.state import MapState
 from mcsm_client.client import MapClient
+from mcsm_client.process import ServerProcess
 from mcsm_client.sampling import pose_from_planar, sample_pose
 
 Op = tuple[str, str, str, np.ndarray | None]
@@ -63,41 +58,13 @@ def at(rng: np.random.Generator, n: int, t: list[float], yaw: float = 0.0) -> np
     return sample_pose(mean, NOISE_COV, n_samples=n, rng=rng)
 
 
-def start_server(workdir: Path, n: int, name: str,
-                 layout: str = "indexed-lz4") -> tuple[subprocess.Popen[str], str, Path]:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        ep = f"tcp/127.0.0.1:{s.getsockname()[1]}"
-    rec = workdir / f"{name}.mcap"
-    log = open(workdir / f"{name}.log", "w")  # noqa: SIM115 - lives as long as the server
-    proc = subprocess.Popen([sys.executable, "-m", "mcsm.cli", "serve", "--listen", ep,
-                             "--samples", str(n), "--record", str(rec), "--log-level", "WARNING"],
-                            stdout=subprocess.PIPE, stderr=log, text=True,
-                            env=dict(os.environ, PYTHONUNBUFFERED="1",
-                                     MCSM_RECORDING_LAYOUT=layout))
-    lines: queue.Queue[str] = queue.Queue()
-    assert proc.stdout is not None
-    out = proc.stdout
-    threading.Thread(target=lambda: [lines.put(x) for x in out], daemon=True).start()
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        try:
-            if lines.get(timeout=0.2).startswith("listening on"):
-                return proc, ep, rec
-        except queue.Empty:
-            if proc.poll() is not None:
-                break
-    proc.kill()
-    raise SystemExit(f"server did not start; see {workdir / f'{name}.log'}")
-
-
-def stop_server(proc: subprocess.Popen[str]) -> None:
-    proc.send_signal(signal.SIGINT)
+def start_server(workdir: Path, n: int, name: str, layout: str = "indexed-lz4") -> ServerProcess:
     try:
-        proc.wait(timeout=60)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait(timeout=10)
+        return ServerProcess(workdir / f"{name}.mcap", n_samples=n,
+                             extra_args=("--log-level", "WARNING"),
+                             env={"MCSM_RECORDING_LAYOUT": layout}).start()
+    except RuntimeError as exc:
+        raise SystemExit(f"server did not start: {exc}") from None
 
 
 def small_map_ops(rng: np.random.Generator, n: int, steps: int) -> tuple[list[Op], list[Op]]:
@@ -193,10 +160,12 @@ def run_config(name: str, n: int, setup: list[Op], ops: list[Op], repeats: int,
                n_queries: int, layout: str = "indexed-lz4", tag: str = "") -> dict[str, Any]:
     per = len(ops) // repeats
     batches = [ops[k * per:(k + 1) * per] for k in range(repeats)]
-    proc, ep, rec = start_server(workdir, n, f"{name}-{layout}{tag}", layout)
+    server = start_server(workdir, n, f"{name}-{layout}{tag}", layout)
+    pid, rec = server.pid, server.record
+    assert pid is not None
     try:
-        with MapClient(connect=ep, timeout_s=60) as c:
-            cpu0 = cpu_s(proc.pid)
+        with MapClient(connect=server.endpoint, timeout_s=60) as c:
+            cpu0 = cpu_s(pid)
             t_setup = time.perf_counter_ns()
             for op in setup:
                 send(c, op)
@@ -210,7 +179,7 @@ def run_config(name: str, n: int, setup: list[Op], ops: list[Op], repeats: int,
                     kinds[k] = kinds.get(k, 0) + 1
                 live.append((time.perf_counter_ns() - t0) / 1e9)
             # the same operations replay will apply: setup + measured batches
-            server_cpu_ms = 1e3 * (cpu_s(proc.pid) - cpu0) / (len(setup) + per * repeats)
+            server_cpu_ms = 1e3 * (cpu_s(pid) - cpu0) / (len(setup) + per * repeats)
             frames = c.info().n_frames
             a, b = query_pair
             for _ in range(20):  # warm-up
@@ -225,7 +194,7 @@ def run_config(name: str, n: int, setup: list[Op], ops: list[Op], repeats: int,
                 c.marginal(a, b)
                 m_rtt.append((time.perf_counter_ns() - t0) / 1e6)
     finally:
-        stop_server(proc)
+        server.stop(timeout_s=60)
     core = core_only(n, setup, batches)
     c0 = time.process_time()
     rep = replay(rec)

@@ -23,141 +23,17 @@ from __future__ import annotations
 import argparse
 import copy
 import json
-import os
-import queue
-import signal
-import socket
-import subprocess
 import sys
-import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import TracebackType
-from typing import IO, Any
+from typing import Any
 
 import numpy as np
 
+from mcsm_client.process import ServerProcess, free_port
+
 __all__ = ["DemoConfig", "ServerProcess", "draw_map", "free_port", "main", "run_demo"]
-
-
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that was free a moment ago (the OS picks it)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-class ServerProcess:
-    """``mcsm serve`` as a child process on a free loopback port; a context manager.
-
-    Parameters
-    ----------
-    record : path
-        The MCAP recording to write.
-    n_samples : int
-        N of the served maps.
-    maps : sequence of str
-        Map names to serve.
-    log_path : path, optional
-        Where the server's stderr (its log) goes; default next to ``record``.
-    extra_args : sequence of str
-        More ``mcsm serve`` flags (``--method paper``, ...).
-    ready_timeout_s : float
-        How long to wait for ``listening on``.
-
-    Attributes
-    ----------
-    endpoint : str
-        ``tcp/127.0.0.1:<port>``, for ``MapClient(connect=...)``.
-    """
-
-    def __init__(self, record: str | os.PathLike[str], *, n_samples: int,
-                 maps: tuple[str, ...] = ("default",), log_path: str | os.PathLike[str] | None
-                 = None, extra_args: tuple[str, ...] = (), ready_timeout_s: float = 60.0
-                 ) -> None:
-        self.record = Path(record)
-        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
-        self.log_path = Path(log_path) if log_path else self.record.with_suffix(".log")
-        self.cmd = [sys.executable, "-m", "mcsm.cli", "serve", "--listen", self.endpoint,
-                    "--samples", str(int(n_samples)), "--record", str(self.record),
-                    *[a for m in maps for a in ("--map", m)], *extra_args]
-        self.ready_timeout_s = ready_timeout_s
-        self.proc: subprocess.Popen[str] | None = None
-        self._log: IO[str] | None = None
-        self.returncode: int | None = None
-
-    def start(self) -> ServerProcess:
-        """Start the server and wait for its ``listening on`` line.
-
-        Raises
-        ------
-        RuntimeError
-            If it exits or stays silent past ``ready_timeout_s`` (the log tail is included).
-        """
-        self.record.parent.mkdir(parents=True, exist_ok=True)
-        self._log = open(self.log_path, "w", encoding="utf-8")  # noqa: SIM115 - closed in stop
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
-        self.proc = subprocess.Popen(self.cmd, stdout=subprocess.PIPE, stderr=self._log,
-                                     text=True, env=env)
-        lines: queue.Queue[str | None] = queue.Queue()
-
-        def pump(out: IO[str]) -> None:
-            for line in out:
-                lines.put(line)
-            lines.put(None)
-
-        assert self.proc.stdout is not None  # Popen with PIPE always sets it
-        threading.Thread(target=pump, args=(self.proc.stdout,), daemon=True).start()
-        deadline = time.monotonic() + self.ready_timeout_s
-        while True:
-            left = deadline - time.monotonic()
-            if left <= 0:
-                self.stop()
-                raise RuntimeError(f"mcsm serve did not get ready in {self.ready_timeout_s} s"
-                                   f"\n{self.log_tail()}")
-            try:
-                line = lines.get(timeout=min(left, 0.5))
-            except queue.Empty:
-                continue
-            if line is None:
-                self.stop()
-                raise RuntimeError(f"mcsm serve exited early (code {self.returncode})\n"
-                                   f"{self.log_tail()}")
-            if line.startswith("listening on"):
-                return self
-
-    def stop(self, timeout_s: float = 20.0) -> int | None:
-        """SIGINT (clean shutdown: the recording is closed), then SIGKILL after ``timeout_s``."""
-        if self.proc is not None and self.returncode is None:
-            if self.proc.poll() is None:
-                self.proc.send_signal(signal.SIGINT)
-                try:
-                    self.proc.wait(timeout=timeout_s)
-                except subprocess.TimeoutExpired:
-                    self.proc.kill()
-                    self.proc.wait(timeout=timeout_s)
-            self.returncode = self.proc.returncode
-            if self.proc.stdout is not None:
-                self.proc.stdout.close()
-        if self._log is not None:
-            self._log.close()
-            self._log = None
-        return self.returncode
-
-    def log_tail(self, n_lines: int = 20) -> str:
-        """The last lines of the server's log."""
-        try:
-            return "\n".join(self.log_path.read_text(encoding="utf-8").splitlines()[-n_lines:])
-        except OSError:
-            return ""
-
-    def __enter__(self) -> ServerProcess:
-        return self.start()
-
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
-        self.stop()
 
 
 @dataclass(frozen=True)

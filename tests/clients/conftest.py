@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 import pytest
 from mcsm_client.datasets import Dataset
-from mcsm_client.demo import ServerProcess
+from mcsm_client.process import ServerProcess
 
 #: N of the maps served to the client tests.
 SERVER_N = 200

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import socket
 import threading
 import time
 from collections.abc import Iterator
@@ -42,14 +41,9 @@ from mcsm.errors import (
 from mcsm.recording import replay
 from mcsm.server import Server, ServerOptions
 from mcsm_client.client import MapClient
+from mcsm_client.process import loopback_endpoint as free_endpoint
 
 N = 24
-
-
-def free_endpoint() -> str:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
 
 
 def at(rng: np.random.Generator, t: list[float], n: int = N) -> np.ndarray:

@@ -19,8 +19,9 @@ import pytest
 from mcsm import StochasticMap
 from mcsm_client.cli import main as cli_main
 from mcsm_client.client import MapClient
-from mcsm_client.demo import DemoConfig, ServerProcess, free_port, run_demo
+from mcsm_client.demo import DemoConfig, run_demo
 from mcsm_client.multirobot import MultiRobotConfig, run_multirobot
+from mcsm_client.process import ServerProcess, free_port
 from mcsm_client.sim import SimConfig, run_sim
 
 N = 200  # the served maps' N (conftest.SERVER_N)

@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from mcsm_client.demo import ServerProcess
+from mcsm_client.process import ServerProcess
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "clients" / "examples"
 

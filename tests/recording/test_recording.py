@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import socket
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +24,7 @@ from mcsm.recording import (
     schema_bytes,
 )
 from mcsm.state import MapState
+from mcsm_client.process import loopback_endpoint
 
 RECORDINGS = Path(__file__).resolve().parents[2] / "recordings"
 # shipped recordings have a .digest beside them; run-*.mcap from local `mcsm serve` runs do not
@@ -151,9 +151,7 @@ def test_serve_refuses_to_restore_a_diverging_recording(tmp_path: Path,
     src, bad = tmp_path / "good.mcap", tmp_path / "bad.mcap"
     record_session(src, 8, 12, seed=5506)
     _rewrite(src, bad, "digest")
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        ep = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    ep = loopback_endpoint()
     code = mcsm_main(["serve", "--listen", ep, "--restore", str(bad), "--record",
                       str(tmp_path / "new.mcap"), "--log-level", "ERROR"])
     assert code == 2
