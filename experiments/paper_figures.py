@@ -305,7 +305,7 @@ def run_gtsam(
     rows: list[dict[str, Any]] = []
     busy, iters, updates = 0.0, 0, 0
     for k, step in enumerate(problem.steps):
-        graph, values = gs._step_factors(step, estimate, landmarks, problem.first_pose)
+        graph, values = gs.step_factors(step, estimate, landmarks, problem.first_pose)
         t0 = time.process_time()
         isam.update(graph, values)
         busy += time.process_time() - t0

@@ -79,6 +79,7 @@ import time
 from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -229,11 +230,12 @@ LEGACY_SAMPLER = False  # set by --legacy-sampler: the 30bbb71 random stream (6 
 
 
 def plain_update(smap: object, i: int, j: int, z: Array, cov: Array,
-                 rng: np.random.Generator) -> None:
-    """One ``update(p_i, p_j, samples)`` with samples drawn around the measurement."""
+                 rng: np.random.Generator) -> Any:
+    """One ``update(p_i, p_j, samples)`` with samples drawn around the measurement; the core's
+    ``UpdateResult`` (its verdict has the loop closure's NIS and live dof)."""
     n = smap.n_samples  # type: ignore[attr-defined]
     x = sample_measurement(z, cov, n, rng=rng, exact=EXACT_MOMENTS, legacy=LEGACY_SAMPLER)
-    smap.update(frame(i), frame(j), x)  # type: ignore[attr-defined]
+    return smap.update(frame(i), frame(j), x)  # type: ignore[attr-defined]
 
 
 def mda_update(n_steps: int) -> UpdateFn:

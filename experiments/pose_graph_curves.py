@@ -50,37 +50,15 @@ def prefix(graph: PoseGraph, k: int) -> PoseGraph:
                      graph.covariances[sel], graph.is_loop[sel], graph.planar, graph.settings)
 
 
-def live_dof(smap: object) -> int:
-    """Dof the core's NIS counts for the observation of the last loop closure (recomputed)."""
-    return int(getattr(smap, "_last_live", -1))
-
-
 def run(scenario: str, seed: int, map_seed: int, every: int, space: str, inflation: str,
         poses: int, n_samples: int, gain: str = "direct") -> list[dict[str, float]]:
     """Run one map and return one dict of figures per checkpoint."""
     from mcsm import StochasticMap
-    from mcsm.core import smap as smap_mod
 
     graph = make_graph(scenario, poses, seed)
     infl: float | str = inflation if inflation == "adaptive" else float(inflation)
     smap = StochasticMap(n_samples, method="joint", space=space, analysis="ensrf", shrink=4.0,
                          inflation=infl, gain=gain)
-    # record the dof the adaptive inflation counts (a wrapper; the core is not changed)
-    orig = smap_mod.StochasticMap._loop_inflation
-
-    def counting(self: object, yc: np.ndarray, y_mean: np.ndarray, z: np.ndarray
-                 ) -> tuple[float, float]:
-        yc_in = yc
-        zc = z - z.mean(axis=0)
-        if yc.shape[1] == 7 and hasattr(smap_mod, "_tangent_part"):  # quaternion space
-            q_bar = y_mean[3:] / np.linalg.norm(y_mean[3:])
-            yc, zc = smap_mod._tangent_part(yc, q_bar), smap_mod._tangent_part(zc, q_bar)
-        s = (yc.T @ yc + zc.T @ zc) / (yc.shape[0] - 1)
-        _, lam, _ = smap_mod.scaled_eigh(s)
-        self._last_live = int((lam > 0).sum())  # type: ignore[attr-defined]
-        return orig(self, yc_in, y_mean, z)  # type: ignore[arg-type]
-
-    smap._loop_inflation = counting.__get__(smap)  # type: ignore[method-assign]
     rng = np.random.default_rng(map_seed)
     rows = []
     later = graph.edges.max(axis=1)
@@ -90,9 +68,10 @@ def run(scenario: str, seed: int, map_seed: int, every: int, space: str, inflati
     for k in checkpoints:
         while e < len(graph.edges) and later[e] < k:
             i, j = graph.edges[e]
-            plain_update(smap, int(i), int(j), graph.measurements[e], graph.covariances[e], rng)
+            r = plain_update(smap, int(i), int(j), graph.measurements[e], graph.covariances[e],
+                             rng)
             if graph.is_loop[e]:
-                dofs.append(live_dof(smap))
+                dofs.append(int(r.verdict.dof))  # the live dof the core's NIS counted
             e += 1
         sub = prefix(graph, k)
         means = np.empty((k, 7))
@@ -114,7 +93,7 @@ def run(scenario: str, seed: int, map_seed: int, every: int, space: str, inflati
                      "ate_gtsam": a_gt, "ratio": a_map / a_gt, "nees": float(per.mean()),
                      "nees_t": float(nt), "nees_r": float(nr),
                      "dof_min": min(dofs, default=-1), "dof_max": max(dofs, default=-1),
-                     "nis_avg": float(smap._nis_avg), "dead_max": dead})  # type: ignore[attr-defined]
+                     "nis_avg": smap.nis_avg, "dead_max": dead})
     return rows
 
 

@@ -28,8 +28,10 @@ positions are within ``loop_radius``; at most ``max_loops_per_pose`` per pose, k
 probability ``p_loop``.
 
 Poses are AT samples in the layout of ``mcsm.core`` (``x y z qw qx qy qz``, scalar-first unit
-quaternion); pose 0 is the identity. The module is pure numpy and does not import ``mcsm`` so
-other experiments can use it on their own.
+quaternion); pose 0 is the identity. The module is pure numpy and does not import ``mcsm``: it
+is the ground truth the map is measured against, so its quaternion helpers (``qmul``, ``qexp``,
+``qlog``, ``qrot``) are a second, independent implementation on purpose (a sign error in
+``mcsm.core.quat`` must not reach the truth too); other experiments can use it on their own.
 
 Output: a :class:`PoseGraph` (arrays) whose :meth:`PoseGraph.constraints` is the common
 constraint list (``Constraint(i, j, z, cov, kind)``, in the order a robot would receive them),

@@ -44,7 +44,9 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 from mcsm.core import mean_and_cov
+from mcsm.core.at import scaled_eigh
 from mcsm.core.gate import chi2_quantile
+from mcsm.core.quat import rotation_matrix
 
 Array = npt.NDArray[np.float64]
 
@@ -85,14 +87,6 @@ class GncResult:
     closures: tuple[int, ...]
 
 
-def _rot(q: Array) -> Array:
-    w, x, y, z = q
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
-
-
 def _compose(a: Array, b: Array) -> Array:
     from mcsm.core import compound
 
@@ -117,14 +111,15 @@ class _Moments:
             return hit
         mean, cov = mean_and_cov(np.asarray(inp.samples, dtype=np.float64))
         # mcsm: t' = t + dt (parent frame), q' = q exp(dr); gtsam Pose3: [dr, R^T dt].
-        r = _rot(mean[3:])
+        r = rotation_matrix(mean[3:])
         j = np.zeros((6, 6))
         j[:3, 3:] = np.eye(3)
         j[3:, :3] = r.T
         c = j @ cov @ j.T
         c = 0.5 * (c + c.T)
         w = np.linalg.eigvalsh(c)
-        dof = int(np.sum(w > 1e-9 * max(float(w.max()), 1e-300)))
+        _, lam, _ = scaled_eigh(c)
+        dof = int(np.sum(lam > 0))  # the live dimensions, by the core's rule (its NIS's dof)
         c = c + np.eye(6) * max(1e-10, 1e-8 * float(w.max()))  # planar: z, roll, pitch fixed
         self._cache[inp.request_id] = (mean, c, dof)
         return mean, c, dof

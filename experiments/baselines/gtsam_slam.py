@@ -250,7 +250,7 @@ def compose_2d(pose: Array, delta: Array) -> Array:
     )
 
 
-def _step_factors(
+def step_factors(
     step: Step2D, estimate: dict[int, Array], landmarks: dict[int, Array], first_pose: Array
 ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
     """Factors and initial values a step adds; updates the dead-reckoning guesses in place."""
@@ -326,7 +326,7 @@ def build_graph_2d(problem: PlanarProblem) -> tuple[gtsam.NonlinearFactorGraph, 
     estimate: dict[int, Array] = {}
     landmarks: dict[int, Array] = {}
     for step in problem.steps:
-        g, v = _step_factors(step, estimate, landmarks, problem.first_pose)
+        g, v = step_factors(step, estimate, landmarks, problem.first_pose)
         graph.push_back(g)
         initial.insert(v)
     return graph, initial
@@ -415,7 +415,7 @@ def isam2_incremental(
     wanted = set(snapshot_steps)
     snapshots: dict[int, dict[int, Array]] = {}
     for k, step in enumerate(problem.steps):
-        graph, values = _step_factors(step, estimate, landmarks, problem.first_pose)
+        graph, values = step_factors(step, estimate, landmarks, problem.first_pose)
         t0 = time.process_time()
         isam.update(graph, values)
         times[k] = time.process_time() - t0

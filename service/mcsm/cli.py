@@ -68,6 +68,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=_version_text())
     sub = p.add_subparsers(dest="command", required=True)
 
+    # choices and defaults come from the code that applies them (core, server), never copies
+    from mcsm.core.smap import GAINS, METHODS, RULES, SPACES, StochasticMap
+    from mcsm.server import ServerOptions
+
+    so = ServerOptions()
+    mo = StochasticMap(2).options()
     s = sub.add_parser("serve", help="run the map server (embedded Zenoh peer)")
     add_connection_args(s, role="server")
     s.add_argument("--connect", action="append", default=None, metavar="ENDPOINT",
@@ -82,21 +88,21 @@ def build_parser() -> argparse.ArgumentParser:
     rt.add_argument("--zenoh-config", default=None, metavar="FILE",
                     help="Zenoh JSON5 config (TLS, access control); its mode becomes router")
     rt.add_argument("--log-level", default="INFO")
-    s.add_argument("--samples", type=int, default=1000, metavar="N",
-                   help="samples per AT for new maps (default 1000)")
-    s.add_argument("--method", choices=("joint", "paper"), default="joint",
-                   help="case II update (default joint)")
-    s.add_argument("--space", choices=("tangent", "quaternion"), default="tangent",
-                   help="vector space of the merges (default tangent)")
-    s.add_argument("--analysis", choices=("ensrf", "denkf", "enkf"), default="ensrf",
-                   help="analysis rule of the joint update (default ensrf, square root)")
-    s.add_argument("--shrink", type=_shrink, default=4.0, metavar="C|none",
-                   help="correlation shrink constant of the joint update (default 4; 'none' "
-                        "turns it off)")
-    s.add_argument("--inflation", type=_inflation, default=1.0, metavar="F|adaptive",
+    s.add_argument("--samples", type=int, default=so.map_options["n_samples"], metavar="N",
+                   help="samples per AT for new maps (default %(default)s)")
+    s.add_argument("--method", choices=METHODS, default=mo["method"],
+                   help="case II update (default %(default)s)")
+    s.add_argument("--space", choices=SPACES, default=mo["space"],
+                   help="vector space of the merges (default %(default)s)")
+    s.add_argument("--analysis", choices=RULES, default=mo["analysis"],
+                   help="analysis rule of the joint update (default %(default)s)")
+    s.add_argument("--shrink", type=_shrink, default=mo["shrink"], metavar="C|none",
+                   help="correlation shrink constant of the joint update (default "
+                        "%(default)g; 'none' turns it off)")
+    s.add_argument("--inflation", type=_inflation, default=mo["inflation"], metavar="F|adaptive",
                    help="anomaly inflation per loop closure: a factor in [1, 2) or 'adaptive' "
-                        "(default 1, none)")
-    s.add_argument("--gain", choices=("direct", "endpoints"), default="direct",
+                        "(default %(default)g: none)")
+    s.add_argument("--gain", choices=GAINS, default=mo["gain"],
                    help="cross-covariance estimator of the joint update: 'direct' (default) or "
                         "'endpoints' (through the loop's two endpoint frames; better on pose "
                         "graphs, with --inflation 1.002 in 3-D; tangent space only)")
@@ -110,27 +116,31 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--restore", type=Path, default=None, metavar="PATH.mcap",
                    help="rebuild the maps from this recording first, then go on; the new "
                         "recording (--record) repeats its inputs so it replays on its own")
-    s.add_argument("--checkpoint-every", type=int, default=100, metavar="K",
-                   help="record the state digest every K operations per map (default 100)")
-    s.add_argument("--queue-size", type=int, default=1024,
-                   help="requests waiting for the worker before 'busy' errors")
+    s.add_argument("--checkpoint-every", type=int, default=so.checkpoint_every, metavar="K",
+                   help="record the state digest every K operations per map "
+                        "(default %(default)s)")
+    s.add_argument("--queue-size", type=int, default=so.queue_size,
+                   help="requests waiting for the worker before 'busy' errors "
+                        "(default %(default)s)")
     s.add_argument("--fsync", action="store_true",
                    help="fsync the recording before each ack (survives power loss; slow)")
-    s.add_argument("--snapshot-every", type=int, default=100, metavar="K",
+    s.add_argument("--snapshot-every", type=int, default=so.snapshot_every, metavar="K",
                    help="keep an in-memory snapshot of each map every K operations "
-                        "(default 100); retract/reinstate restore one and apply the later "
+                        "(default %(default)s); retract/reinstate restore one and apply the later "
                         "inputs again")
-    s.add_argument("--snapshots-kept", type=int, default=5, metavar="S",
-                   help="snapshots kept per map (default 5): updates of the last (S-1)*K to "
-                        "S*K operations can be retracted")
-    s.add_argument("--disk-snapshot-every", type=int, default=1000, metavar="K",
-                   help="record each map's whole state every K operations (default 1000; 0: "
+    s.add_argument("--snapshots-kept", type=int, default=so.snapshots_kept, metavar="S",
+                   help="snapshots kept per map (default %(default)s): updates of the last "
+                        "(S-1)*K to S*K operations can be retracted")
+    s.add_argument("--disk-snapshot-every", type=int, default=so.disk_snapshot_every,
+                   metavar="K",
+                   help="record each map's whole state every K operations (default "
+                        "%(default)s; 0: "
                         "never); --restore starts from the latest one plus the inputs after it")
-    s.add_argument("--id-ttl-s", type=float, default=600.0, metavar="S",
+    s.add_argument("--id-ttl-s", type=float, default=so.id_ttl_s, metavar="S",
                    help="remember each applied request id this long, so a retry (also after "
-                        "a --restore) is not applied twice (default 600)")
-    s.add_argument("--id-memory", type=int, default=100_000, metavar="K",
-                   help="remember at most this many request ids per map (default 100000)")
+                        "a --restore) is not applied twice (default %(default)g)")
+    s.add_argument("--id-memory", type=int, default=so.lru_size, metavar="K",
+                   help="remember at most this many request ids per map (default %(default)s)")
     s.add_argument("--log-level", default="INFO")
 
     raw = argparse.RawDescriptionHelpFormatter

@@ -26,7 +26,7 @@ pytest.importorskip("gtsam")
 N = 64
 
 
-def _burst_graph() -> tuple[list[Record], list[int], list[int]]:
+def burst_graph() -> tuple[list[Record], list[int], list[int]]:
     """A planar graph of 40-pose laps; the first 4 closures of the third lap's revisit are
     replaced by one wrong rigid offset (2.5 m, 10°) of the old place: they agree together."""
     rng = np.random.default_rng(21)
@@ -57,7 +57,7 @@ def _inputs(recs: list[Record], status: dict[int, str]) -> list[AuditInput]:
 
 @pytest.mark.slow
 def test_gnc_flags_the_burst_and_the_auditor_retracts_exactly_it() -> None:
-    recs, loops, burst = _burst_graph()
+    recs, loops, burst = burst_graph()
     res = run_gnc(_inputs(recs, {}))
     assert set(res.closures) == set(loops)
     out = {k for k in loops if res.weights[k] < 0.5}
@@ -82,7 +82,7 @@ def test_gnc_flags_the_burst_and_the_auditor_retracts_exactly_it() -> None:
 
 @pytest.mark.slow
 def test_reinstate_and_hysteresis() -> None:
-    recs, loops, burst = _burst_graph()
+    recs, loops, burst = burst_graph()
     true_loops = [k for k in loops if k not in burst]
     # a true closure the map had rejected comes back; the burst, already out, stays out
     status = {k: "rejected" for k in burst}

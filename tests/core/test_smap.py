@@ -260,8 +260,8 @@ def test_adaptive_inflation_reacts_to_surprising_loop_closures_only() -> None:
         far = surprised.query("x0", f"x{5 + k}")[rng.permutation(n)]
         far[:, :3] += 2.0  # 2 m off: tens of predicted σ
         surprised.update("x0", f"x{5 + k}", far)
-    assert honest._nis_avg < 1.2
-    assert surprised._nis_avg > 5.0
+    assert honest.nis_avg < 1.2
+    assert surprised.nis_avg > 5.0
     assert honest.state_digest() != surprised.state_digest()
     with pytest.raises(InvalidOperation):
         StochasticMap(n, inflation="sometimes")
@@ -293,7 +293,7 @@ def test_planar_loop_closures_count_three_dof_and_keep_dead_dimensions_zero(spac
         m = StochasticMap(n, space=space, inflation="adaptive")
         m.update("x0", "x1", planar(truth + sd * rng.standard_normal(3)))
         m.update("x0", "x1", planar(truth + sd * rng.standard_normal(3)))
-        nis.append((m._nis_avg - 0.95) / 0.05)  # one closure: avg = 0.95 · 1 + 0.05 · NIS
+        nis.append((m.nis_avg - 0.95) / 0.05)  # one closure: avg = 0.95 · 1 + 0.05 · NIS
         e = m.edges("x0")
         assert not np.any(e[..., [2, 4, 5]])  # dead dimensions exactly zero
     # NIS/dof of one closure is about chi2(3)/3: spread sqrt(2/3); plus the 1/N-order bias of

@@ -13,7 +13,7 @@ from mcsm import StochasticMap
 from mcsm_client.cli import main
 from mcsm_client.client import MapClient
 
-from tests.clients.test_audit import N, _burst_graph
+from tests.clients.test_audit import N, burst_graph
 from tests.service.daemon_util import Daemon, start_daemon
 
 pytest.importorskip("gtsam")
@@ -22,7 +22,7 @@ pytest.importorskip("gtsam")
 @pytest.mark.slow
 def test_audit_retracts_a_burst_through_the_server(tmp_path: Path, daemons: list[Daemon],
                                                    capsys: pytest.CaptureFixture[str]) -> None:
-    recs, _, burst = _burst_graph()
+    recs, _, burst = burst_graph()
     d = start_daemon(tmp_path, "--samples", str(N), "--gate", "0.99",
                      "--snapshots-kept", "1000")
     daemons.append(d)

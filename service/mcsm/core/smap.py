@@ -122,6 +122,11 @@ class StochasticMap(Forest):
 
     # ------------------------------------------------------------------ introspection
     @property
+    def nis_avg(self) -> float:
+        """The running NIS average per dof that adaptive inflation steers by (1 at start)."""
+        return self._nis_avg
+
+    @property
     def portable(self) -> bool:
         """True when every update of this map gives the same bits on every CPU (all but
         ``method="paper"`` in the quaternion space, whose loop closure runs on numpy/BLAS)."""
