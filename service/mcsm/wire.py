@@ -334,6 +334,14 @@ def check_map(val: Any, name: str) -> dict[str, Any]:
     return val
 
 
+def check_counts(val: Any, name: str) -> dict[str, int]:
+    """A check: a map of names to counts (integers, not bools)."""
+    if not isinstance(val, dict) or not all(
+            isinstance(k, str) and type(v) is int for k, v in val.items()):
+        raise BadMessage(name, "a map of names to counts", short(val))
+    return dict(val)
+
+
 def _is_none(x: Any) -> bool:
     return x is None
 
@@ -495,34 +503,65 @@ class Ack:
         lambda v, name: Verdict.from_dict(v), pack=message_dict, required=False, omit=_is_none))
 
 
+def _check_mean(val: Any, name: str) -> Samples:
+    mean = unpack_array(val, name, 1, max_elems=7)
+    if mean.shape != (7,):
+        raise BadMessage(name, "shape (7,)", str(mean.shape))
+    return mean
+
+
+def _check_cov(val: Any, name: str) -> Samples:
+    cov = unpack_array(val, name, 2, max_elems=36)
+    if cov.shape != (6, 6):
+        raise BadMessage(name, "shape (6, 6)", str(cov.shape))
+    return cov
+
+
+def _optional_array(check: Check) -> dict[str, WireField]:
+    """An array field a reply may leave out (None: not sent)."""
+    return wire_field(check, pack=lambda a: pack_array(a), required=False, omit=_is_none)
+
+
 @dataclass(frozen=True)
 class QueryReply:
-    request_id: str
-    a: str
-    b: str
-    seq: int
-    samples: Samples | None = None
-    mean: Samples | None = None
-    cov: Samples | None = None
+    """What ``<prefix>/<map>/query`` answers: the samples ``(N, 7)`` of ``a -> b``, or their
+    mean ``(7,)`` and tangent covariance ``(6, 6)`` (both or neither). Encoded field by field."""
+
+    request_id: str = field(metadata=wire_field(check_text(MAX_ID_CHARS), key="id"))
+    a: str = field(metadata=wire_field(lambda v, n: check_frame(v, n)))
+    b: str = field(metadata=wire_field(lambda v, n: check_frame(v, n)))
+    seq: int = field(metadata=wire_field(check_count))
+    samples: Samples | None = field(default=None, metadata=_optional_array(
+        lambda v, n: decode_samples(v, None, widths=(7,), fieldname=n)))
+    mean: Samples | None = field(default=None, metadata=_optional_array(_check_mean))
+    cov: Samples | None = field(default=None, metadata=_optional_array(_check_cov))
+
+    def __post_init__(self) -> None:
+        if (self.mean is None) != (self.cov is None):
+            raise BadMessage("mean/cov", "both mean and cov, or neither",
+                             "only " + ("mean" if self.cov is None else "cov"))
 
 
 @dataclass(frozen=True)
 class MapInfo:
-    """What ``<prefix>/<map>/info`` answers."""
+    """What ``<prefix>/<map>/info`` answers (encoded field by field)."""
 
-    map: str
-    n_samples: int
-    options: dict[str, Any]
-    seq: int
-    digest: str
-    frames: tuple[str, ...]
-    components: dict[str, tuple[str, ...]]
-    rejected: int
-    rejected_by_error: dict[str, int]
-    server_id: str
-    recording: str
-    queue_length: int = 0
-    verdicts: dict[str, int] = field(default_factory=dict)
+    map: str = field(metadata=wire_field(check_text(64)))
+    n_samples: int = field(metadata=wire_field(check_count))
+    options: dict[str, Any] = field(metadata=wire_field(check_map, pack=dict))
+    seq: int = field(metadata=wire_field(check_count))
+    digest: str = field(metadata=wire_field(check_text(128)))
+    frames: tuple[str, ...] = field(metadata=_NAMES)
+    components: dict[str, tuple[str, ...]] = field(metadata=wire_field(
+        lambda v, n: {str(k): check_names(c, n) for k, c in check_map(v, n).items()},
+        pack=lambda c: {k: list(v) for k, v in c.items()}))
+    rejected: int = field(metadata=wire_field(check_count))
+    rejected_by_error: dict[str, int] = field(metadata=wire_field(check_counts, pack=dict))
+    server_id: str = field(metadata=wire_field(check_text(256)))
+    recording: str = field(metadata=wire_field(check_text(4096)))
+    queue_length: int = field(default=0, metadata=wire_field(check_count, required=False))
+    verdicts: dict[str, int] = field(default_factory=dict, metadata=wire_field(
+        check_counts, pack=dict, required=False))
     """Updates per verdict status (accepted, rejected, ...)."""
 
     @property
@@ -532,9 +571,12 @@ class MapInfo:
 
 @dataclass(frozen=True)
 class SubmapReply:
-    request_id: str
-    seq: int
-    submap: SubmapData
+    """What an export on ``<prefix>/<map>/submap`` answers (encoded field by field)."""
+
+    request_id: str = field(metadata=wire_field(check_text(MAX_ID_CHARS), key="id"))
+    seq: int = field(metadata=wire_field(check_count))
+    submap: SubmapData = field(metadata=wire_field(lambda v, n: decode_submap_data(v, None),
+                                                   pack=lambda sub: _pack_submap(sub)))
 
 
 @dataclass(frozen=True)
@@ -933,83 +975,29 @@ def decode_ack(payload: bytes) -> Ack:
 
 
 def encode_query_reply(r: QueryReply) -> bytes:
-    d: dict[str, Any] = {"v": VERSION, "id": r.request_id, "a": r.a, "b": r.b, "seq": r.seq}
-    if r.samples is not None:
-        d["samples"] = pack_array(r.samples)
-    if r.mean is not None and r.cov is not None:
-        d["mean"] = pack_array(r.mean)
-        d["cov"] = pack_array(r.cov)
-    return pack(d)
+    return pack({"v": VERSION, **message_dict(r)})
 
 
 def decode_query_reply(payload: bytes) -> QueryReply:
-    d = unpack(payload, max_bytes=MAX_REPLY_BYTES)
-    _keys(d, ("id", "a", "b", "seq"), ("samples", "mean", "cov"))
-    samples = mean = cov = None
-    if "samples" in d:
-        samples = decode_samples(d["samples"], None, widths=(7,))
-    if "mean" in d or "cov" in d:
-        mean = unpack_array(d.get("mean"), "mean", 1, max_elems=7)
-        cov = unpack_array(d.get("cov"), "cov", 2, max_elems=36)
-        if mean.shape != (7,) or cov.shape != (6, 6):
-            raise BadMessage("mean/cov", "shapes (7,) and (6, 6)",
-                             f"{mean.shape} and {cov.shape}")
-    return QueryReply(request_id=_str(d, "id", max_chars=MAX_ID_CHARS), a=check_frame(d["a"]),
-                      b=check_frame(d["b"]), seq=_int(d, "seq"), samples=samples, mean=mean,
-                      cov=cov)
+    return from_message_dict(QueryReply, unpack(payload, max_bytes=MAX_REPLY_BYTES))
 
 
 def encode_info_reply(info: MapInfo) -> bytes:
-    return pack({"v": VERSION, "map": info.map, "n_samples": info.n_samples,
-                 "options": dict(info.options), "seq": info.seq, "digest": info.digest,
-                 "frames": list(info.frames),
-                 "components": {k: list(v) for k, v in info.components.items()},
-                 "rejected": info.rejected, "rejected_by_error": dict(info.rejected_by_error),
-                 "server_id": info.server_id, "recording": info.recording,
-                 "queue_length": info.queue_length, "verdicts": dict(info.verdicts)})
+    return pack({"v": VERSION, **message_dict(info)})
 
 
 def decode_info_reply(payload: bytes) -> MapInfo:
     # one entry per component: allow as many as a map may have frames
-    d = unpack(payload, max_bytes=MAX_REPLY_BYTES, max_map_len=MAX_SUBMAP_FRAMES)
-    _keys(d, ("map", "n_samples", "options", "seq", "digest", "frames", "components",
-              "rejected", "rejected_by_error", "server_id", "recording"),
-          ("queue_length", "verdicts"))
-    if not isinstance(d["options"], dict) or not isinstance(d["components"], dict):
-        raise BadMessage("options/components", "maps", "other types")
-    if not isinstance(d["rejected_by_error"], dict):
-        raise BadMessage("rejected_by_error", "a map", type(d["rejected_by_error"]).__name__)
-    return MapInfo(
-        map=_str(d, "map", max_chars=64), n_samples=_int(d, "n_samples"),
-        options=dict(d["options"]), seq=_int(d, "seq"), digest=_str(d, "digest", max_chars=128),
-        frames=check_names(d["frames"], "frames"),
-        components={str(k): check_names(v, "components") for k, v in d["components"].items()},
-        rejected=_int(d, "rejected"),
-        rejected_by_error={str(k): int(v) for k, v in d["rejected_by_error"].items()},
-        server_id=_str(d, "server_id", max_chars=256),
-        recording=_str(d, "recording", max_chars=4096),
-        queue_length=int(d.get("queue_length", 0)),
-        verdicts=_count_map(d.get("verdicts", {}), "verdicts"),
-    )
-
-
-def _count_map(obj: Any, fieldname: str) -> dict[str, int]:
-    if not isinstance(obj, dict) or not all(
-            isinstance(k, str) and type(v) is int for k, v in obj.items()):
-        raise BadMessage(fieldname, "a map of names to counts", short(obj))
-    return dict(obj)
+    return from_message_dict(MapInfo, unpack(payload, max_bytes=MAX_REPLY_BYTES,
+                                             max_map_len=MAX_SUBMAP_FRAMES))
 
 
 def encode_submap_reply(r: SubmapReply) -> bytes:
-    return pack({"v": VERSION, "id": r.request_id, "seq": r.seq,
-                 "submap": _pack_submap(r.submap)})
+    return pack({"v": VERSION, **message_dict(r)})
 
 
 def decode_submap_reply(payload: bytes) -> SubmapReply:
-    d = unpack(payload, max_bytes=MAX_REPLY_BYTES)
-    _keys(d, ("id", "seq", "submap"))
-    return SubmapReply(request_id=_str(d, "id", max_chars=MAX_ID_CHARS), seq=_int(d, "seq"),
-                       submap=decode_submap_data(d["submap"], None))
+    return from_message_dict(SubmapReply, unpack(payload, max_bytes=MAX_REPLY_BYTES))
 
 
 def encode_error(err: McsmError, request_id: str = "") -> bytes:

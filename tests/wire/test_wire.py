@@ -304,7 +304,9 @@ def test_derived_optional_fields_may_be_left_out_by_older_peers() -> None:
                                          "digest": 5}))
 
 
-@pytest.mark.parametrize("cls,schema", [(wire.Ack, "ack.json"), (wire.Event, "event.json")])
+@pytest.mark.parametrize("cls,schema", [
+    (wire.Ack, "ack.json"), (wire.Event, "event.json"), (wire.MapInfo, "info_reply.json"),
+    (wire.QueryReply, "query_reply.json"), (wire.SubmapReply, "submap_reply.json")])
 def test_derived_messages_and_their_schemas_name_the_same_fields(cls: type,
                                                                  schema: str) -> None:
     """A field added to a derived message must be added to its schema too (and the reverse)."""
@@ -321,12 +323,59 @@ def test_derived_messages_and_their_schemas_name_the_same_fields(cls: type,
 @given(payload=_values.map(msgpack.packb) | st.fixed_dictionaries(
     {"v": st.just(1)}, optional={k: _values for k in (
         "id", "seq", "op", "kind", "component", "frames_added", "frames_removed", "duplicate",
-        "server", "verdict", "map", "frames", "time_ns", "digest", "extra")}).map(msgpack.packb))
+        "server", "verdict", "map", "frames", "time_ns", "digest", "extra", "n_samples",
+        "options", "components", "rejected", "rejected_by_error", "server_id", "recording",
+        "queue_length", "verdicts", "a", "b", "samples", "mean", "cov", "submap")}
+                                             ).map(msgpack.packb))
 def test_reply_decoders_only_raise_typed_errors(payload: bytes) -> None:
-    for decode in (wire.decode_ack, wire.decode_event):
+    for decode in (wire.decode_ack, wire.decode_event, wire.decode_info_reply,
+                   wire.decode_query_reply, wire.decode_submap_reply):
         try:
             msg = decode(payload)
         except McsmError as exc:
             assert exc.to_dict()["error"] == type(exc).__name__
         else:
             assert dataclasses.is_dataclass(msg)
+
+
+def test_derived_info_query_and_submap_replies_keep_their_checks() -> None:
+    info = wire.MapInfo("m", 10, {"n_samples": 10}, 2, "ab", ("w", "r"), {"w": ("w", "r")}, 1,
+                        {"BadMessage": 1}, "zid", "x.mcap", 3, {"accepted": 2})
+    d = msgpack.unpackb(wire.encode_info_reply(info))
+    assert wire.decode_info_reply(msgpack.packb(d)) == info
+    for change, fieldname in [({"queue_length": "3"}, "queue_length"),
+                              ({"rejected_by_error": {"BadMessage": "1"}}, "rejected_by_error"),
+                              ({"verdicts": {"accepted": True}}, "verdicts"),
+                              ({"components": {"w": "w"}}, "components"),
+                              ({"options": []}, "options"), ({"seq": -2}, "seq")]:
+        with pytest.raises(BadMessage) as exc:
+            wire.decode_info_reply(msgpack.packb({**d, **change}))
+        assert exc.value.to_dict()["fields"]["field"] == fieldname
+    old = {k: v for k, v in d.items() if k not in ("queue_length", "verdicts")}
+    assert wire.decode_info_reply(msgpack.packb(old)).queue_length == 0  # an older server
+    mean, cov = np.zeros(7), np.eye(6)
+    mean[3] = 1.0
+    q = msgpack.unpackb(wire.encode_query_reply(
+        wire.QueryReply("q", "a", "b", 1, mean=mean, cov=cov)))
+    with pytest.raises(BadMessage, match="mean/cov"):
+        wire.decode_query_reply(msgpack.packb({k: v for k, v in q.items() if k != "cov"}))
+    with pytest.raises(BadMessage, match="cov"):
+        wire.decode_query_reply(msgpack.packb({**q, "cov": wire.pack_array(np.eye(5))}))
+    with pytest.raises(BadMessage, match="bad a: "):
+        wire.decode_query_reply(msgpack.packb({**q, "a": "a//b"}))
+    with pytest.raises(InvalidSamples):
+        wire.decode_query_reply(msgpack.packb({**q, "mean": wire.pack_array(
+            np.full(7, np.nan))}))
+    edges = np.zeros((2, 3, 7))
+    edges[..., 3] = 1.0
+    sub = wire.SubmapData("w", ("w", "r"), (False, False), edges)
+    r = msgpack.unpackb(wire.encode_submap_reply(wire.SubmapReply("s", 4, sub)))
+    assert wire.decode_submap_reply(msgpack.packb(r)).submap.frames == ("w", "r")
+    with pytest.raises(BadMessage, match="submap.frames"):
+        wire.decode_submap_reply(msgpack.packb({**r, "submap": {**r["submap"],
+                                                                "frames": ["w", "w"]}}))
+    with pytest.raises(InvalidSamples):
+        bad = edges.copy()
+        bad[1, 0, 3] = 2.0
+        wire.decode_submap_reply(msgpack.packb({**r, "submap": {**r["submap"],
+                                                                "edges": wire.pack_array(bad)}}))
