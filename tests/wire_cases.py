@@ -12,7 +12,7 @@ from collections.abc import Callable
 
 import msgpack
 import numpy as np
-from mcsm import wire
+from mcsm import ops, wire
 from mcsm.core.at import identity
 
 
@@ -151,14 +151,7 @@ CASES: list[tuple[str, str, Callable[[int], bytes], str, bool]] = [
 ]
 
 
-def decode_for(op: str, payload: bytes, n: int) -> object:
-    """Decode ``payload`` as the server does for ``op`` (codec checks only)."""
-    if op == "update":
-        return wire.decode_update(payload, n)
-    if op == "remove":
-        return wire.decode_remove(payload)
-    if op == "query":
-        return wire.decode_query(payload)
-    if op == "info":
-        return wire.decode_info(payload)
-    return wire.decode_submap_request(payload, n)
+def decode_for(leaf: str, payload: bytes, n: int) -> object:
+    """Decode ``payload`` sent to key leaf ``leaf`` as the server does (the table of
+    operations; codec checks only)."""
+    return ops.decode_request(leaf, payload, n)[1]
