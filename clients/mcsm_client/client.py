@@ -206,6 +206,7 @@ class MapClient:
         # time spent in each state; the one that took most of the deadline names the failure
         spent = {"none": 0.0, "silent": 0.0, "slow": 0.0}
         attempt = 0
+        last_error: McsmError | None = None
         while True:
             t_iter = time.monotonic()
             left = deadline - t_iter
@@ -222,10 +223,17 @@ class MapClient:
                     ok, data = got
                     if ok:
                         return decode(data)
-                    raise wire.decode_error(data)
-                state = got  # "slow" (zenoh's own timeout) or "silent" (no reply at all)
-                if got == "silent" and self._pinned is None:
-                    self._server = None  # it may have restarted under a new id
+                    err = wire.decode_error(data)
+                    if not err.retryable or deadline - time.monotonic() < MIN_ATTEMPT_S:
+                        raise err
+                    # e.g. NotReplicated: the same request id again after a backoff
+                    log.info("%s: %s; retrying", what, err)
+                    state = "slow"
+                    last_error = err
+                else:
+                    state = got  # "slow" (zenoh's own timeout) or "silent" (no reply at all)
+                    if got == "silent" and self._pinned is None:
+                        self._server = None  # it may have restarted under a new id
             else:
                 state = "none"
             left = deadline - time.monotonic()
@@ -239,6 +247,8 @@ class MapClient:
         cause = max(spent, key=lambda k: spent[k]) if attempt else "none"
         log.info("%s: gave up after %.3g s (%d attempts; %s)", what, t, attempt,
                  ", ".join(f"{k} {v:.2g} s" for k, v in spent.items()))
+        if last_error is not None and cause == "slow":
+            raise last_error
         if cause == "none":
             raise NoServer(self.map, self.keys.alive_any, t)
         if cause == "silent":

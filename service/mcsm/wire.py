@@ -151,6 +151,22 @@ class Keys:
     def alive_any(self) -> str:
         return self._k("alive/*")
 
+    # Replication keys (hot standbys, :mod:`mcsm.replication`). ``@`` makes a chunk verbatim:
+    # the map's ``**`` queryable never matches these keys, so clients' requests and the
+    # servers' replication traffic never meet (and an access-control list grants them apart).
+    def standby(self, server_id: str) -> str:
+        """A standby's queryable (the primary pushes inputs to it) and liveliness token."""
+        return self._k(f"@standby/{server_id}")
+
+    @property
+    def standby_any(self) -> str:
+        return self._k("@standby/*")
+
+    @property
+    def log(self) -> str:
+        """The primary's catch-up queryable: a standby asks for the inputs after its seq."""
+        return self._k("@log")
+
     def route(self, key: str) -> tuple[str, str]:
         """``(leaf, namespace)`` of a concrete key of this map: ``("update", "robot1")`` for
         ``.../update/robot1``, ``("info", "")`` for ``.../info``.
@@ -394,6 +410,12 @@ class MapInfo:
     queue_length: int = 0
     verdicts: dict[str, int] = field(default_factory=dict)
     """Updates per verdict status (accepted, rejected, ...)."""
+    role: str = "primary"
+    """``primary`` (a standby has no map queryable: only the primary answers info)."""
+    standbys: dict[str, int] = field(default_factory=dict)
+    """Each live standby's server id and the last seq it confirmed (its lag: ``seq`` minus
+    that); ``sync_standbys`` of them must confirm an update before it is acknowledged."""
+    sync_standbys: int = 0
 
     @property
     def n_frames(self) -> int:
@@ -882,7 +904,9 @@ def encode_info_reply(info: MapInfo) -> bytes:
                  "components": {k: list(v) for k, v in info.components.items()},
                  "rejected": info.rejected, "rejected_by_error": dict(info.rejected_by_error),
                  "server_id": info.server_id, "recording": info.recording,
-                 "queue_length": info.queue_length, "verdicts": dict(info.verdicts)})
+                 "queue_length": info.queue_length, "verdicts": dict(info.verdicts),
+                 "role": info.role, "standbys": dict(info.standbys),
+                 "sync_standbys": info.sync_standbys})
 
 
 def decode_info_reply(payload: bytes) -> MapInfo:
@@ -890,7 +914,7 @@ def decode_info_reply(payload: bytes) -> MapInfo:
     d = unpack(payload, max_bytes=MAX_REPLY_BYTES, max_map_len=MAX_SUBMAP_FRAMES)
     _keys(d, ("map", "n_samples", "options", "seq", "digest", "frames", "components",
               "rejected", "rejected_by_error", "server_id", "recording"),
-          ("queue_length", "verdicts"))
+          ("queue_length", "verdicts", "role", "standbys", "sync_standbys"))
     if not isinstance(d["options"], dict) or not isinstance(d["components"], dict):
         raise BadMessage("options/components", "maps", "other types")
     if not isinstance(d["rejected_by_error"], dict):
@@ -906,6 +930,9 @@ def decode_info_reply(payload: bytes) -> MapInfo:
         recording=_str(d, "recording", max_chars=4096),
         queue_length=int(d.get("queue_length", 0)),
         verdicts=_count_map(d.get("verdicts", {}), "verdicts"),
+        role=_str(d, "role", max_chars=16) if "role" in d else "primary",
+        standbys=_count_map(d.get("standbys", {}), "standbys"),
+        sync_standbys=_int(d, "sync_standbys") if "sync_standbys" in d else 0,
     )
 
 
