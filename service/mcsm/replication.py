@@ -468,7 +468,19 @@ class Follower:
             self._need.set()
         elif e.seq == self.st.seq + 1:
             self._apply(e)
+        elif not self._same(e):
+            self._stop_following(f"seq {e.seq} here is another input than the primary's "
+                                 f"({e.request_id!r}): the histories forked")
         self._reply(query, {"t": "have"})
+
+    def _same(self, e: Entry) -> bool:
+        """Whether the input this standby holds at ``e.seq`` is ``e`` (True if too old to
+        tell: only the last ``--repl-log`` inputs are kept)."""
+        k = e.seq - self.recent[0].seq if self.recent else -1
+        if not 0 <= k < len(self.recent):
+            return True
+        mine = self.recent[k]
+        return mine.request_id == e.request_id and mine.payload == e.payload
 
     def _ensure_state(self, config: dict[str, Any]) -> MapState:
         if self.st is None:
