@@ -70,8 +70,6 @@ DEFAULT_TIMEOUT_S = 10.0
 BACKOFF_FIRST_S = 0.05
 BACKOFF_MAX_S = 1.0
 MIN_ATTEMPT_S = 0.02
-_DONE = object()  # the query is finalised
-_GONE = object()  # the server it went to lost its liveliness token
 """An attempt with less time left than this is not started (the call ends)."""
 
 
@@ -144,7 +142,7 @@ class MapClient:
         self._closed = False
         # the attempt in flight (its server and reply queue): if that server's token goes away
         # (it died: a standby takes over) the attempt ends at once instead of at its timeout
-        self._waiting: tuple[str, queue.Queue[Any]] | None = None
+        self._waiting: tuple[str, zenoh.CancellationToken] | None = None
         self._alive_sub = self.session.liveliness().declare_subscriber(
             self.keys.alive_any, self._on_alive)
 
@@ -154,7 +152,7 @@ class MapClient:
         zid = str(sample.key_expr).rsplit("/", 1)[-1]
         waiting = self._waiting
         if waiting is not None and waiting[0] == zid:
-            waiting[1].put(_GONE)
+            waiting[1].cancel()
 
     # ---------------------------------------------------------------- lifecycle
     def close(self) -> None:
@@ -274,36 +272,36 @@ class MapClient:
                  server: str) -> tuple[bool, bytes] | str:
         """One ``get`` to every queryable on ``key``; the server's ``(ok, payload)``, or
         ``"slow"`` (Zenoh's own timeout reply) or ``"silent"`` (no reply at all)."""
-        replies: queue.Queue[Any] = queue.Queue()
-        self._waiting = (server, replies)
+        token = zenoh.CancellationToken()
+        self._waiting = (server, token)
         try:
-            self.session.get(key, payload=payload, timeout=timeout_s,
-                             congestion_control=zenoh.CongestionControl.BLOCK,
-                             target=zenoh.QueryTarget.ALL,
-                             consolidation=zenoh.ConsolidationMode.NONE,
-                             handler=zenoh.handlers.Callback(
-                                 replies.put, lambda: replies.put(_DONE), indirect=False))
-            return self._collect(key, replies, timeout_s, server)
+            replies = self.session.get(key, payload=payload, timeout=timeout_s,
+                                       congestion_control=zenoh.CongestionControl.BLOCK,
+                                       target=zenoh.QueryTarget.ALL,
+                                       consolidation=zenoh.ConsolidationMode.NONE,
+                                       cancellation_token=token)
+            got = self._collect(key, replies, timeout_s, server)
         finally:
             self._waiting = None
+        if token.is_cancelled and not isinstance(got, tuple):
+            # the server died with the request: ask whoever serves the map now
+            log.info("%s: server %s went away", key, server)
+            return "silent"
+        return got
 
-    def _collect(self, key: str, replies: queue.Queue[Any], timeout_s: float,
+    def _collect(self, key: str, replies: Any, timeout_s: float,
                  server: str) -> tuple[bool, bytes] | str:
         outcome = "silent"
-        # The queue ends when the query is finalised (every replier done, or zenoh's own
-        # timeout); the extra slack only guards against a finalisation that never comes.
+        # The handler ends when the query is finalised (every replier done, zenoh's own
+        # timeout, or cancelled: the server's token went away); the extra slack only guards
+        # against a finalisation that never comes.
         t0 = time.monotonic()
         deadline = t0 + timeout_s + 2.0
-        while True:
+        while time.monotonic() < deadline:
             try:
-                reply = replies.get(timeout=max(0.0, deadline - time.monotonic()))
-            except queue.Empty:
+                reply = replies.recv()
+            except zenoh.ZError:  # "channel is empty and closed": the query is finalised
                 break
-            if reply is _DONE:
-                break
-            if reply is _GONE:  # the server died with the request: ask whoever serves now
-                log.info("%s: server %s went away", key, server)
-                return "silent"
             replier = reply.replier_id
             from_server = replier is not None and str(replier.zid) == server
             if reply.ok is not None:
