@@ -150,6 +150,8 @@ class MapClient:
         if sample.kind != zenoh.SampleKind.DELETE:
             return
         zid = str(sample.key_expr).rsplit("/", 1)[-1]
+        if self._pinned is None and self._server == zid:
+            self._server = None  # the next call looks for the map's server again
         waiting = self._waiting
         if waiting is not None and waiting[0] == zid:
             waiting[1].cancel()
@@ -228,10 +230,11 @@ class MapClient:
             if self._server is None:
                 self._server = self._resolve_server(left)
             left = deadline - time.monotonic()
-            if self._server is not None and left >= MIN_ATTEMPT_S:
+            server = self._server  # the liveliness callback may reset it meanwhile
+            if server is not None and left >= MIN_ATTEMPT_S:
                 attempt += 1
-                last_server = self._server
-                got = self._attempt(key, payload, left, self._server)
+                last_server = server
+                got = self._attempt(key, payload, left, server)
                 if isinstance(got, tuple):
                     ok, data = got
                     if ok:

@@ -4,7 +4,9 @@
 
     mcsm serve [--listen tcp/127.0.0.1:7457] [--map NAME]... [--samples N]
                [--method joint|paper] [--record PATH.mcap] [--restore PATH.mcap]
-               [--zenoh-config FILE]
+               [--zenoh-config FILE] [--connect ENDPOINT]...
+               [--standby-of MAP]... [--sync-standbys K]
+    mcsm router --listen ENDPOINT
     mcsm replay FILE.mcap [--json]
     mcsm inspect FILE.mcap [--json]
     mcsm recover IN.mcap -o OUT.mcap

@@ -287,19 +287,21 @@ class PrimaryLink:
         if self.sync == 0:
             self.server.session.get(self.keys.standby_any, handler=self._note_async, **kw)
             return True
-        replies = self.server.session.get(self.keys.standby_any, **kw)
+        # every reply is noted (the lag of each standby in info), but the worker waits only
+        # for the first ``sync`` confirmations, or for the query's end (all replied, timeout)
         have: set[str] = set()
-        deadline = time.monotonic() + self.timeout_s + 1.0
-        while time.monotonic() < deadline:
-            try:
-                reply = replies.recv()
-            except zenoh.ZError:  # finalised: every standby answered, or the timeout
-                break
+        wake = threading.Event()
+
+        def on_reply(reply: zenoh.Reply) -> None:
             got = self._note(reply)
             if got is not None and got[1] >= e.seq:
                 have.add(got[0])
                 if len(have) >= self.sync:
-                    break
+                    wake.set()
+
+        self.server.session.get(self.keys.standby_any, **kw, handler=zenoh.handlers.Callback(
+            on_reply, wake.set, indirect=False))
+        wake.wait(self.timeout_s + 1.0)
         if len(have) >= self.sync:
             self.confirmed = max(self.confirmed, e.seq)
             return True
@@ -461,8 +463,8 @@ class Follower:
     def _reply_push(self, query: zenoh.Query, e: Entry, sender: str) -> None:
         if self.promoted or self.stopped is not None:
             pass
-        elif sender and self.primary is not None and sender != self.primary:
-            log.warning("map %r: ignoring a push from %s (following %s)", self.name, sender,
+        elif sender != self.primary:  # not (yet) the server whose token this standby sees
+            log.warning("map %r: ignoring a push from %r (following %s)", self.name, sender,
                         self.primary)
         elif self.st is None or e.seq > self.st.seq + 1:
             self._need.set()
