@@ -44,7 +44,8 @@ def _odometry(rng: np.random.Generator, n: int, x: float, sigma: float) -> np.nd
     return t
 
 
-def _stream(ep: str, n: int, updates: int, seed: int, stamps: list[float] | None = None,
+def _stream(ep: str, n: int, updates: int, seed: int,
+            stamps: list[tuple[float, str]] | None = None,
             stop: threading.Event | None = None) -> list[float]:
     from mcsm_client.client import MapClient
 
@@ -60,10 +61,10 @@ def _stream(ep: str, n: int, updates: int, seed: int, stamps: list[float] | None
                 todo.append((f"p{k + 1}", f"p{k - 3}", _odometry(rng, n, -4.0, 0.2)))
             for a, b, t in todo:
                 t0 = time.perf_counter()
-                c.update(a, b, t)
+                ack = c.update(a, b, t)
                 lat.append(time.perf_counter() - t0)
                 if stamps is not None:
-                    stamps.append(time.monotonic())
+                    stamps.append((time.monotonic(), ack.server))
     return lat
 
 
@@ -113,7 +114,7 @@ def part2(n: int, kills: int, tmp: Path, seed: int) -> None:
                                        "--connect", ep, name=name, endpoint="-")
         time.sleep(1.0)
         primary = "s0"
-        stamps: list[float] = []
+        stamps: list[tuple[float, str]] = []
         stop = threading.Event()
         th = threading.Thread(target=_stream, args=(ep, n, 1_000_000, 2, stamps, stop),
                               daemon=True)
@@ -137,13 +138,17 @@ def part2(n: int, kills: int, tmp: Path, seed: int) -> None:
                 catch_up.append(time.monotonic() - t_back)
             time.sleep(float(rng.uniform(0.5, 1.5)))
             before = len(stamps)
+            old_id = watcher.info().server_id
             t_kill = time.monotonic()
             procs[primary].proc.send_signal(signal.SIGKILL)
             procs[primary].proc.wait(timeout=30)
             deadline = time.monotonic() + 60
-            while time.monotonic() < deadline and not any(t > t_kill for t in stamps[before:]):
+
+            new: list[float] = []  # acks of the new primary (not replies in flight)
+            while time.monotonic() < deadline and not new:
                 time.sleep(0.002)
-            kill_to_ack.append(min(t for t in stamps[before:] if t > t_kill) - t_kill)
+                new = [t for t, srv in stamps[before:] if t > t_kill and srv != old_id]
+            kill_to_ack.append(min(new) - t_kill)
             # who took over, and how long after the token went away
             took = None
             deadline = time.monotonic() + 10
