@@ -336,7 +336,8 @@ def cmd_info(args: argparse.Namespace) -> int:
            "seq": info.seq, "digest": info.digest, "n_frames": info.n_frames,
            "components": {k: list(v) for k, v in info.components.items()},
            "rejected": info.rejected, "server_id": info.server_id,
-           "recording": info.recording, "verdicts": dict(info.verdicts)}
+           "recording": info.recording, "verdicts": dict(info.verdicts), "role": info.role,
+           "standbys": dict(info.standbys), "sync_standbys": info.sync_standbys}
     comps = ", ".join(f"{root} ({len(frames)} frames)" for root, frames in
                       list(info.components.items())[:10])
     more = " ..." if len(info.components) > 10 else ""
@@ -346,6 +347,11 @@ def cmd_info(args: argparse.Namespace) -> int:
             f"rejected inputs {info.rejected}; recording {info.recording or '-'}")
     if info.verdicts:
         text += "\nverdicts: " + ", ".join(f"{k} {v}" for k, v in sorted(info.verdicts.items()))
+    text += f"\nserver {info.server_id} ({info.role})"
+    if info.standbys or info.sync_standbys:
+        lag = ", ".join(f"{z} lag {info.seq - s}" for z, s in sorted(info.standbys.items()))
+        text += (f"; standbys: {lag or 'none'} ({info.sync_standbys} synchronous "
+                 "required)")
     _print(args, obj, text)
     return EXIT_OK
 
@@ -486,6 +492,13 @@ def cmd_servers(args: argparse.Namespace) -> int:
                 continue
             parts = str(reply.ok.key_expr).split("/")
             rows.append({"map": parts[-3], "server": parts[-1], "role": "primary"})
+        # hot standbys: the verbatim @standby chunk is matched only literally, map by map
+        for m in sorted({r["map"] for r in rows}):
+            for reply in c.session.liveliness().get(f"{args.prefix}/{m}/@standby/*",
+                                                    timeout=2.0):
+                if reply.ok is not None:
+                    zid = str(reply.ok.key_expr).rsplit("/", 1)[-1]
+                    rows.append({"map": m, "server": zid, "role": "standby"})
     rows.sort(key=lambda r: (r["map"], r["server"]))
     text = "\n".join(f"{r['map']:24s} {r['server']:34s} {r['role']}" for r in rows) \
         or "no live server"

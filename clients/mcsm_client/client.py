@@ -138,6 +138,21 @@ class MapClient:
         self._id_base = uuid.uuid4().hex[:16]
         self._counter = itertools.count(1)
         self._closed = False
+        # the attempt in flight (its server and reply queue): if that server's token goes away
+        # (it died: a standby takes over) the attempt ends at once instead of at its timeout
+        self._waiting: tuple[str, zenoh.CancellationToken] | None = None
+        self._alive_sub = self.session.liveliness().declare_subscriber(
+            self.keys.alive_any, self._on_alive)
+
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        if sample.kind != zenoh.SampleKind.DELETE:
+            return
+        zid = str(sample.key_expr).rsplit("/", 1)[-1]
+        if self._pinned is None and self._server == zid:
+            self._server = None  # the next call looks for the map's server again
+        waiting = self._waiting
+        if waiting is not None and waiting[0] == zid:
+            waiting[1].cancel()
 
     # ---------------------------------------------------------------- lifecycle
     def close(self) -> None:
@@ -204,6 +219,7 @@ class MapClient:
         # time spent in each state; the one that took most of the deadline names the failure
         spent = {"none": 0.0, "silent": 0.0, "slow": 0.0}
         attempt = 0
+        last_error: McsmError | None = None
         while True:
             t_iter = time.monotonic()
             left = deadline - t_iter
@@ -212,18 +228,26 @@ class MapClient:
             if self._server is None:
                 self._server = self._resolve_server(left)
             left = deadline - time.monotonic()
-            if self._server is not None and left >= MIN_ATTEMPT_S:
+            server = self._server  # the liveliness callback may reset it meanwhile
+            if server is not None and left >= MIN_ATTEMPT_S:
                 attempt += 1
-                last_server = self._server
-                got = self._attempt(key, payload, left, self._server)
+                last_server = server
+                got = self._attempt(key, payload, left, server)
                 if isinstance(got, tuple):
                     ok, data = got
                     if ok:
                         return decode(data)
-                    raise wire.decode_error(data)
-                state = got  # "slow" (zenoh's own timeout) or "silent" (no reply at all)
-                if got == "silent" and self._pinned is None:
-                    self._server = None  # it may have restarted under a new id
+                    err = wire.decode_error(data)
+                    if not err.retryable or deadline - time.monotonic() < MIN_ATTEMPT_S:
+                        raise err
+                    # e.g. NotReplicated: the same request id again after a backoff
+                    log.info("%s: %s; retrying", what, err)
+                    state = "slow"
+                    last_error = err
+                else:
+                    state = got  # "slow" (zenoh's own timeout) or "silent" (no reply at all)
+                    if got == "silent" and self._pinned is None:
+                        self._server = None  # it may have restarted under a new id
             else:
                 state = "none"
             left = deadline - time.monotonic()
@@ -237,6 +261,8 @@ class MapClient:
         cause = max(spent, key=lambda k: spent[k]) if attempt else "none"
         log.info("%s: gave up after %.3g s (%d attempts; %s)", what, t, attempt,
                  ", ".join(f"{k} {v:.2g} s" for k, v in spent.items()))
+        if last_error is not None and cause == "slow":
+            raise last_error
         if cause == "none":
             raise NoServer(self.map, self.keys.alive_any, t)
         if cause == "silent":
@@ -247,13 +273,29 @@ class MapClient:
                  server: str) -> tuple[bool, bytes] | str:
         """One ``get`` to every queryable on ``key``; the server's ``(ok, payload)``, or
         ``"slow"`` (Zenoh's own timeout reply) or ``"silent"`` (no reply at all)."""
-        replies = self.session.get(key, payload=payload, timeout=timeout_s,
-                                   congestion_control=zenoh.CongestionControl.BLOCK,
-                                   target=zenoh.QueryTarget.ALL,
-                                   consolidation=zenoh.ConsolidationMode.NONE)
+        token = zenoh.CancellationToken()
+        self._waiting = (server, token)
+        try:
+            replies = self.session.get(key, payload=payload, timeout=timeout_s,
+                                       congestion_control=zenoh.CongestionControl.BLOCK,
+                                       target=zenoh.QueryTarget.ALL,
+                                       consolidation=zenoh.ConsolidationMode.NONE,
+                                       cancellation_token=token)
+            got = self._collect(key, replies, timeout_s, server)
+        finally:
+            self._waiting = None
+        if token.is_cancelled and not isinstance(got, tuple):
+            # the server died with the request: ask whoever serves the map now
+            log.info("%s: server %s went away", key, server)
+            return "silent"
+        return got
+
+    def _collect(self, key: str, replies: Any, timeout_s: float,
+                 server: str) -> tuple[bool, bytes] | str:
         outcome = "silent"
-        # The handler ends when the query is finalised (every replier done, or zenoh's own
-        # timeout); the extra slack only guards against a finalisation that never comes.
+        # The handler ends when the query is finalised (every replier done, zenoh's own
+        # timeout, or cancelled: the server's token went away); the extra slack only guards
+        # against a finalisation that never comes.
         t0 = time.monotonic()
         deadline = t0 + timeout_s + 2.0
         while time.monotonic() < deadline:

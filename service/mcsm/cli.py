@@ -4,7 +4,9 @@
 
     mcsm serve [--listen tcp/127.0.0.1:7457] [--map NAME]... [--samples N]
                [--method joint|paper] [--record PATH.mcap] [--restore PATH.mcap]
-               [--zenoh-config FILE]
+               [--zenoh-config FILE] [--connect ENDPOINT]...
+               [--standby-of MAP]... [--sync-standbys K]
+    mcsm router --listen ENDPOINT
     mcsm replay FILE.mcap [--json]
     mcsm inspect FILE.mcap [--json]
     mcsm recover IN.mcap -o OUT.mcap
@@ -141,6 +143,20 @@ def build_parser() -> argparse.ArgumentParser:
                         "a --restore) is not applied twice (default %(default)g)")
     s.add_argument("--id-memory", type=int, default=so.lru_size, metavar="K",
                    help="remember at most this many request ids per map (default %(default)s)")
+    hs = s.add_argument_group("hot standby (docs/fleet.md)")
+    hs.add_argument("--standby-of", action="append", default=None, metavar="MAP",
+                    help="follow MAP's primary as a hot standby (repeatable): apply and record "
+                         "its inputs, take over when its liveliness token goes away")
+    hs.add_argument("--sync-standbys", type=int, default=so.sync_standbys, metavar="K",
+                    help="acknowledge an update only once K standbys hold it, and refuse "
+                         "updates (retryable NotReplicated) while fewer are alive (default 0: "
+                         "an ack may be lost with the primary if no standby got it yet)")
+    hs.add_argument("--sync-timeout", type=float, default=so.sync_timeout_s, metavar="S",
+                    help="seconds to wait for the synchronous standbys' confirmation of one "
+                         "input (default %(default)s)")
+    hs.add_argument("--repl-log", type=int, default=so.repl_log, metavar="K",
+                    help="inputs per map kept in memory for standbys that catch up; one that "
+                         "is further behind gets a snapshot (default %(default)s)")
     s.add_argument("--log-level", default="INFO")
 
     raw = argparse.RawDescriptionHelpFormatter
@@ -288,7 +304,8 @@ def serve(args: argparse.Namespace) -> int:
             record = Path("recordings") / f"run-{stamp}-{k}.mcap"
             k += 1
     # restoring without --map serves the recording's maps (or "default" if it has none)
-    maps = args.map or ([] if args.restore else [wire.DEFAULT_MAP])
+    standby_of = list(dict.fromkeys(args.standby_of or []))
+    maps = args.map or ([] if args.restore or standby_of else [wire.DEFAULT_MAP])
     opts = ServerOptions(
         maps=list(dict.fromkeys(maps)), prefix=args.prefix,
         map_options={"n_samples": args.samples, "method": args.method, "space": args.space,
@@ -299,9 +316,11 @@ def serve(args: argparse.Namespace) -> int:
         queue_size=args.queue_size, fsync=args.fsync, lru_size=max(1, args.id_memory),
         id_ttl_s=max(0.0, args.id_ttl_s), snapshot_every=max(1, args.snapshot_every),
         snapshots_kept=max(1, args.snapshots_kept),
-        disk_snapshot_every=max(0, args.disk_snapshot_every))
+        disk_snapshot_every=max(0, args.disk_snapshot_every), standby_of=standby_of,
+        sync_standbys=max(0, args.sync_standbys), sync_timeout_s=max(0.01, args.sync_timeout),
+        repl_log=max(1, args.repl_log))
     try:
-        for name in opts.maps:
+        for name in [*opts.maps, *opts.standby_of]:
             wire.map_keys(name, opts.prefix)
         conf = server_config(args.listen, args.zenoh_config, connect=args.connect)
     except (McsmError, zenoh.ZError, OSError) as exc:

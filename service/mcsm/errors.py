@@ -13,6 +13,9 @@ from typing import Any
 class McsmError(Exception):
     """Root of every error mcsm raises on purpose."""
 
+    retryable = False
+    """True for errors a client retries with the same request id until its deadline."""
+
     def __init__(self, message: str, **fields: Any) -> None:
         super().__init__(message)
         self.message = message
@@ -144,6 +147,21 @@ class Forbidden(McsmError):
                          reason=reason)
 
 
+class NotReplicated(McsmError):
+    """The map's server could not get the update to its synchronous standbys in time
+    (``mcsm serve --sync-standbys K``): it is not acknowledged. It may or may not have been
+    applied; retry with the same request id (``MapClient`` does, until its deadline): the
+    retry is applied once, or acknowledged once the standbys have it.
+    """
+
+    retryable = True
+
+    def __init__(self, map_name: str, have: int, need: int, reason: str) -> None:
+        super().__init__(f"map {map_name!r}: {reason} ({have} of {need} synchronous "
+                         "standbys); retry with the same request id", map=map_name, have=have,
+                         need=need, reason=reason)
+
+
 class InternalError(McsmError):
     """An unexpected server-side failure (logged there with its traceback); nothing applied."""
 
@@ -188,6 +206,7 @@ _REGISTRY: dict[str, type[McsmError]] = {
     c.__name__: c
     for c in (McsmError, BadMessage, UnsupportedVersion, InvalidSamples, SampleCountMismatch,
               UnknownFrame, FrameExists, InvalidOperation, NotRelated, NumericalError,
-              LimitExceeded, Busy, RequestIdReused, Forbidden, InternalError, Timeout,
+              LimitExceeded, Busy, RequestIdReused, Forbidden, NotReplicated, InternalError,
+              Timeout,
               NoServer, NoPermittedServer)
 }

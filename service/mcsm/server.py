@@ -54,6 +54,14 @@ from mcsm.recording import (
     decode_input,
     replay,
 )
+from mcsm.replication import (
+    DEFAULT_LOG_ENTRIES,
+    DEFAULT_SYNC_TIMEOUT_S,
+    TAKEOVER,
+    Entry,
+    Follower,
+    PrimaryLink,
+)
 from mcsm.state import DEFAULT_ID_TTL_S, DEFAULT_LRU, MapState
 
 log = logging.getLogger(__name__)
@@ -80,6 +88,24 @@ class ServerOptions:
     disk_snapshot_every: int = 1000
     """Record the whole state every K operations of a map (0: never); --restore starts from
     the latest."""
+    standby_of: list[str] = field(default_factory=list)
+    """Maps this server follows as a hot standby (:mod:`mcsm.replication`)."""
+    sync_standbys: int = 0
+    """Standbys that must hold an update before the primary acknowledges it."""
+    sync_timeout_s: float = DEFAULT_SYNC_TIMEOUT_S
+    repl_log: int = DEFAULT_LOG_ENTRIES
+    """Inputs per map kept in memory for standbys that catch up."""
+
+
+@dataclass
+class _Task:
+    """Work for the worker that is not a client request (replication): ``run`` then ``done``."""
+
+    run: Callable[[], Any]
+    done: Callable[[], None] | None = None
+    result: Any = None
+    error: BaseException | None = None
+    finished: threading.Event = field(default_factory=threading.Event)
 
 
 @dataclass
@@ -118,6 +144,8 @@ class Server:
         self._close_lock = threading.Lock()
         self.failed = threading.Event()  # set when the worker hit a fatal error
         self._reject_lock = threading.Lock()
+        self.links: dict[str, PrimaryLink] = {}  # maps this server is primary of
+        self.followers: dict[str, Follower] = {}  # maps this server is a standby of
 
     # ---------------------------------------------------------------- lifecycle
     def start(self) -> None:
@@ -129,8 +157,14 @@ class Server:
             If the restore file diverges or the record path exists.
         """
         o = self.opts
-        for name in o.maps:
+        for name in [*o.maps, *o.standby_of]:
             wire.map_keys(name, o.prefix)  # check names before doing any work
+        both = sorted(set(o.maps) & set(o.standby_of))
+        if both:
+            raise McsmError(f"map {both[0]!r} is both served and followed as a standby")
+        if o.standby_of and o.restore is not None:
+            raise McsmError("a standby copies its state from the primary: --standby-of "
+                            "cannot be combined with --restore")
         self.check_not_served(list(o.maps))
         if o.record is not None:
             if o.restore is not None and Path(o.record).resolve() == Path(o.restore).resolve():
@@ -154,7 +188,7 @@ class Server:
             for st in self.states.values():
                 if self.recorder is not None:
                     self.recorder.checkpoint(st.name, st.seq, st.digest(), "restore")
-        maps = list(o.maps) or ([] if self.states else [wire.DEFAULT_MAP])
+        maps = list(o.maps) or ([] if self.states or o.standby_of else [wire.DEFAULT_MAP])
         for name in maps:
             if name in self.states:
                 if self.states[name].map.options() != StochasticMap.from_options(
@@ -173,6 +207,8 @@ class Server:
         self._worker.start()
         for name, st in self.states.items():
             self._declare(name, st)
+        for name in dict.fromkeys(o.standby_of):
+            self.followers[name] = Follower(self, name, wire.map_keys(name, o.prefix))
 
     def check_not_served(self, names: list[str], timeout_s: float = 2.0) -> None:
         """Refuse maps another live server already serves (its liveliness token is seen):
@@ -192,12 +228,15 @@ class Server:
                 if other != self.server_id:
                     raise McsmError(f"map {name!r} is already served by server {other} "
                                     f"(liveliness token {reply.ok.key_expr}): refusing to "
-                                    "serve it a second time")
+                                    "serve it a second time (to follow it, start this "
+                                    f"server with --standby-of {name})")
 
-    def _declare(self, name: str, st: MapState) -> None:
+    def _declare(self, name: str, st: MapState, recent: list[Entry] | None = None,
+                 sync: int = 0) -> None:
         k = wire.map_keys(name, self.opts.prefix)
         self.keys[name] = k
         s = self.session
+        self.links[name] = PrimaryLink(self, st, k, recent, sync)
         # One queryable per map: one callback thread, one arrival order for all its keys.
         self._entities.append(s.declare_queryable(
             k.all, lambda query: self._on_query(k, st, query), complete=False))
@@ -218,6 +257,10 @@ class Server:
             except zenoh.ZError as exc:
                 log.debug("undeclare: %s", exc)
         self._entities.clear()
+        for f in self.followers.values():
+            f.close()
+        for link in self.links.values():
+            link.close()
         if self._worker is not None and self._worker.is_alive():
             self._queue.put(_STOP)
             self._worker.join(timeout=60.0)
@@ -232,6 +275,9 @@ class Server:
             if not self.failed.is_set():
                 for st in self.states.values():
                     self.recorder.checkpoint(st.name, st.seq, st.digest(), "close")
+                for f in self.followers.values():
+                    if f.st is not None and not f.promoted:
+                        self.recorder.checkpoint(f.name, f.st.seq, f.st.digest(), "close")
             self.recorder.close()
             log.info("recording closed: %s (%d inputs)", self.recorder.path,
                      self.recorder.n_inputs)
@@ -279,6 +325,9 @@ class Server:
             item = self._queue.get()
             if item is _STOP:
                 return
+            if isinstance(item, _Task):
+                self._run_task(item)
+                continue
             try:
                 self._handle(item)
             except Exception:  # the outermost loop: log, answer, keep serving
@@ -286,6 +335,78 @@ class Server:
                 self._reply_err(item, InternalError("see the server log"))
             finally:
                 item.query.drop()
+
+    def _run_task(self, task: _Task) -> None:
+        try:
+            task.result = task.run()
+        except Exception as exc:  # logged; the caller that waits gets it back
+            log.exception("replication task")
+            task.error = exc
+        finally:
+            task.finished.set()
+            if task.done is not None:
+                task.done()
+
+    def submit(self, run: Callable[[], Any], done: Callable[[], None] | None = None) -> bool:
+        """Queue ``run`` (then ``done``) for the worker; False if the queue is full."""
+        try:
+            self._queue.put_nowait(_Task(run, done))
+        except queue.Full:
+            return False
+        return True
+
+    def run_in_worker(self, run: Callable[[], Any], timeout_s: float) -> Any:
+        """Run ``run`` on the worker (between two operations) and return its result.
+
+        Raises
+        ------
+        McsmError
+            If the worker did not run it within ``timeout_s`` (or it raised).
+        """
+        task = _Task(run)
+        try:
+            self._queue.put(task, timeout=timeout_s)
+        except queue.Full:
+            raise McsmError("the worker's queue stayed full") from None
+        if not task.finished.wait(timeout_s):
+            raise McsmError(f"the worker did not get to it within {timeout_s:g} s")
+        if task.error is not None:
+            raise McsmError(f"failed on the worker: {task.error}") from task.error
+        return task.result
+
+    def promote(self, f: Follower) -> bool:
+        """Take over ``f``'s map as its primary (on the worker); False if another server
+        serves it already."""
+        if f.st is None or f.stopped is not None or self._closed:
+            return False
+        try:
+            self.check_not_served([f.name], timeout_s=0.5)
+        except McsmError as exc:
+            log.warning("not taking over: %s", exc)
+            return False
+        t_lost = f.lost_at
+        st = f.became_primary()
+        del self.followers[f.name]
+        self.states[st.name] = st
+        self._declare(st.name, st, list(f.recent), f.sync)
+        digest = st.digest()
+        if self.recorder is not None:
+            try:
+                self.recorder.checkpoint(st.name, st.seq, digest, "takeover")
+            except (OSError, ValueError) as exc:
+                log.critical("recording failed: %s", exc)
+                self.failed.set()
+        took = time.monotonic() - t_lost if t_lost is not None else float("nan")
+        log.warning("map %r: took over as primary at seq %d (%.3f s after the primary's token "
+                    "went away)", st.name, st.seq, took)
+        ev = wire.Event(map=st.name, seq=st.seq, op=TAKEOVER, kind=TAKEOVER, frames=(),
+                        component=None, time_ns=time.time_ns(), digest=digest,
+                        extra={"server": self.server_id, "takeover_s": took})
+        try:
+            self._publishers[st.name].put(wire.encode_event(ev))
+        except zenoh.ZError as exc:
+            log.warning("could not publish the takeover event: %s", exc)
+        return True
 
     def _reply(self, item: _Item, payload: bytes) -> None:
         try:
@@ -327,10 +448,18 @@ class Server:
         except McsmError as exc:  # RequestIdReused: an id sent again with another request
             self._reject(st, item.query, exc, req.request_id, item.op)
             return
+        link = self.links.get(st.name)
         if dup is not None:
             log.info("map %r: request %s already applied as seq %d; resending its ack",
                      st.name, req.request_id, dup.seq)
+            if link is not None and not link.ensure(dup.seq):
+                self._reply_err(item, link.refusal("the standbys do not confirm it yet"))
+                return
             self._reply(item, wire.encode_ack(replace(dup, server=self.server_id)))
+            return
+        if link is not None and not link.can_accept():
+            self._reject(st, item.query, link.refusal("too few standbys are alive"),
+                         req.request_id, item.op)
             return
         try:
             operation.check_namespace_map(st, req, item.namespace, item.key)
@@ -339,13 +468,12 @@ class Server:
             self._reject(st, item.query, exc, req.request_id, item.op)
             return
         ack = replace(ack, server=self.server_id)
-        digest: str | None = None
+        digest = st.digest() if ack.seq % self.opts.checkpoint_every == 0 else None
         try:
             if self.recorder is not None:
                 self.recorder.input(item.op, st.name, ack.seq, item.recv_ns, item.sender,
                                     req.request_id, item.payload)
-                if ack.seq % self.opts.checkpoint_every == 0:
-                    digest = st.digest()
+                if digest is not None:
                     self.recorder.checkpoint(st.name, ack.seq, digest, "periodic")
                 k = self.opts.disk_snapshot_every
                 if k > 0 and ack.seq % k == 0:
@@ -357,7 +485,13 @@ class Server:
             self.failed.set()
             self._reply_err(item, McsmError(f"recording failed: {exc}"))
             return
-        self._reply(item, wire.encode_ack(ack))
+        replicated = link is None or link.push(Entry(
+            ack.seq, item.op, item.recv_ns, item.sender, req.request_id, item.payload, digest))
+        if replicated:
+            self._reply(item, wire.encode_ack(ack))
+        else:  # applied and recorded; a retry with the same id is acknowledged once confirmed
+            assert link is not None
+            self._reply_err(item, link.refusal("the standbys did not confirm it in time"))
         ev = ops.event(item.op, st, req, ack, time_ns=time.time_ns(), digest=digest)
         try:
             self._publishers[st.name].put(wire.encode_event(ev))
@@ -376,7 +510,9 @@ class Server:
             rejected=rejected, rejected_by_error=by_error, server_id=self.server_id,
             verdicts=dict(st.verdicts),
             recording=str(self.recorder.path) if self.recorder is not None else "",
-            queue_length=self._queue.qsize())
+            queue_length=self._queue.qsize(),
+            standbys=self.links[st.name].standbys() if st.name in self.links else {},
+            sync_standbys=self.links[st.name].sync if st.name in self.links else 0)
 
 
 def _source(query: zenoh.Query) -> str:

@@ -158,6 +158,22 @@ class MapState:
         self._acks[req.request_id] = (ack, ops.fingerprint(op, req), int(time_ns))
         self._forget(int(time_ns))
 
+    def export_ids(self) -> list[list[Any]]:
+        """The remembered request ids, oldest first, as ``[id, seq, op, fingerprint,
+        time_ns]`` rows (a standby that starts from a snapshot imports them, so a retry of an
+        input applied before that snapshot is still recognised after a takeover)."""
+        return [[rid, ack.seq, ack.op, fp, t] for rid, (ack, fp, t) in self._acks.items()]
+
+    def import_ids(self, rows: list[Any]) -> None:
+        """Remember the ids of :meth:`export_ids` (their acks say ``restored``)."""
+        for row in rows:
+            rid, seq, op, fp, t_ns = row
+            self._acks.pop(str(rid), None)
+            self._acks[str(rid)] = (wire.Ack(str(rid), int(seq), str(op), "restored", None),
+                                    str(fp), int(t_ns))
+        while len(self._acks) > self.lru_size:
+            self._acks.popitem(last=False)
+
     def verdict_of(self, request_id: str) -> wire.Ack:
         """The ack (with its current verdict) of a remembered request id.
 

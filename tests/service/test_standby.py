@@ -1,0 +1,176 @@
+"""Hot standbys (issue 18): a primary, synchronous standbys, takeovers, late standbys.
+
+Every process is real (``mcsm router``, ``mcsm serve`` subprocesses, client processes), on
+127.0.0.1 behind one router; every wait has a deadline.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcsm.recording import TOPIC_CHECKPOINT, TOPIC_OPS, RecordingReader, replay
+from mcsm_client.cli import main as client_main
+from mcsm_client.client import MapClient
+
+from tests.service.daemon_util import Daemon, noisy_at, start_daemon
+from tests.service.test_fleet import _router
+
+N = 32
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _inputs(path: Path) -> dict[int, str]:
+    """seq -> request id of every input of map ``m`` in a recording (cut files too)."""
+    out: dict[int, str] = {}
+    for item in RecordingReader(path):
+        if item.topic in TOPIC_OPS and item.data.get("map") == "m":
+            seq = int(item.data["seq"])
+            assert seq not in out, f"{path.name}: seq {seq} recorded twice"
+            out[seq] = str(item.data["id"])
+    return out
+
+
+def _takeover_seq(path: Path) -> int | None:
+    for item in RecordingReader(path):
+        if item.topic == TOPIC_CHECKPOINT and item.data.get("reason") == "takeover":
+            return int(item.data["seq"])
+    return None
+
+
+def _poll(what: str, fn: object, deadline_s: float = 60.0) -> None:
+    assert callable(fn)
+    t_end = time.monotonic() + deadline_s
+    while time.monotonic() < t_end:
+        if fn():
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"{what}: not within {deadline_s} s")
+
+
+def _standby(tmp: Path, ep: str, name: str, *extra: str) -> Daemon:
+    return start_daemon(tmp, "--samples", str(N), "--standby-of", "m", "--connect", ep,
+                        *extra, name=name, endpoint="-")
+
+
+def test_sync_standby_loses_nothing_over_three_kills(tmp_path: Path,
+                                                    daemons: list[Daemon]) -> None:
+    router, ep = _router(tmp_path)
+    clients: list[subprocess.Popen[bytes]] = []
+    try:
+        procs = {"s0": start_daemon(tmp_path, "--samples", str(N), "--map", "m", "--connect",
+                                    ep, "--sync-standbys", "1", name="s0", endpoint="-")}
+        daemons.append(procs["s0"])
+        procs["s1"] = _standby(tmp_path, ep, "s1")
+        daemons.append(procs["s1"])
+        primary, standby = "s0", "s1"
+        watcher = MapClient(map="m", connect=ep, timeout_s=30.0)
+        _poll("the standby joins", lambda: len(watcher.info().standbys) == 1)
+        n_clients, count = 4, 40
+        for i in range(n_clients):
+            clients.append(subprocess.Popen(
+                [sys.executable, "-m", "tests.service.fleet_client", ep, "m", str(i),
+                 str(count), str(N), str(tmp_path / f"acks{i}.txt")], cwd=REPO,
+                stderr=open(tmp_path / f"client{i}.log", "w"),  # noqa: SIM115
+                env=dict(os.environ, PYTHONUNBUFFERED="1")))
+        rng = np.random.default_rng(20261123)
+        succession: list[tuple[str, str]] = []  # (killed, the standby that took over)
+        for kill in range(3):
+            target = watcher.info().seq + int(rng.integers(5, 30))
+            _poll(f"seq {target} before kill {kill}", lambda t=target: watcher.info().seq >= t)
+            old_id = watcher.info().server_id
+            procs[primary].proc.send_signal(signal.SIGKILL)
+            procs[primary].proc.wait(timeout=30)
+            _poll(f"takeover {kill}", lambda o=old_id: watcher.info().server_id != o)
+            succession.append((primary, standby))
+            # the killed server comes back as a standby (a new process and recording)
+            new = f"s{kill + 2}"
+            procs[new] = _standby(tmp_path, ep, new)
+            daemons.append(procs[new])
+            primary, standby = standby, new
+            _poll("the new standby joins", lambda: len(watcher.info().standbys) == 1)
+        for i, c in enumerate(clients):
+            assert c.wait(timeout=240) == 0, (tmp_path / f"client{i}.log").read_text()[-3000:]
+        final = watcher.info()
+        watcher.close()
+        assert procs[standby].stop() == 0  # first, or it would take over from the primary
+        assert procs[primary].stop() == 0
+    finally:
+        for c in clients:
+            if c.poll() is None:
+                c.kill()
+        router.kill()
+        router.wait(timeout=10)
+    acks: dict[str, int] = {}
+    for i in range(n_clients):
+        for line in (tmp_path / f"acks{i}.txt").read_text().splitlines():
+            rid, seq, _server = line.split()
+            assert rid not in acks
+            acks[rid] = int(seq)
+    assert len(acks) == n_clients * (count + count // 10)
+    recorded = _inputs(procs[primary].record)
+    assert sorted(recorded) == list(range(1, final.seq + 1))  # seqs 1..seq, each once
+    by_id = {rid: seq for seq, rid in recorded.items()}
+    assert len(by_id) == len(recorded), "an input was applied twice"
+    assert by_id == acks, "an acknowledged update is lost, or applied under another seq"
+    rep = replay(procs[primary].record)
+    assert rep.divergence is None and rep.final_digests()["m"] == final.digest
+    # every recording replays identical; each killed primary agrees with the final map up to
+    # the seq its successor took over at (beyond it lie inputs it never acknowledged)
+    for name, d in procs.items():
+        r = replay(d.record)
+        assert r.divergence is None, f"{name}: {r.divergence}"
+    for killed, successor in succession:
+        t = _takeover_seq(procs[successor].record)
+        assert t is not None
+        mine = _inputs(procs[killed].record)
+        assert {s: mine[s] for s in mine if s <= t} == \
+            {s: recorded[s] for s in recorded if s <= t and s >= min(mine, default=1)}
+
+
+@pytest.mark.parametrize("repl_log", ["5", "2000"], ids=["snapshot", "log"])
+def test_late_standby_catches_up(tmp_path: Path, daemons: list[Daemon], repl_log: str,
+                                 capsys: pytest.CaptureFixture[str]) -> None:
+    router, ep = _router(tmp_path)
+    try:
+        p = start_daemon(tmp_path, "--samples", str(N), "--map", "m", "--connect", ep,
+                         "--repl-log", repl_log, name="p", endpoint="-")
+        daemons.append(p)
+        rng = np.random.default_rng(7)
+        with MapClient(map="m", connect=ep, timeout_s=30.0) as c:
+            x0 = noisy_at(rng, N, [1.0, 0.0, 0.0])
+            first = c.update("r/0", "r/1", x0, request_id="first")
+            for k in range(1, 30):
+                c.update(f"r/{k}", f"r/{k + 1}", noisy_at(rng, N, [1.0, 0.0, 0.0]))
+            s = _standby(tmp_path, ep, "s")
+            daemons.append(s)
+            _poll("the standby joins", lambda: len(c.info().standbys) == 1)
+            assert client_main(["servers", "--json", "--connect", ep]) == 0
+            rows = json.loads(capsys.readouterr().out)["servers"]
+            assert sorted(r["role"] for r in rows if r["map"] == "m") == ["primary", "standby"]
+            for k in range(30, 35):
+                c.update(f"r/{k}", f"r/{k + 1}", noisy_at(rng, N, [1.0, 0.0, 0.0]))
+            info = c.info()
+            _poll("the standby confirms the head",
+                  lambda: c.info().standbys and min(c.info().standbys.values()) >= info.seq)
+            # the standby takes over and still knows a request id applied before it came
+            p.proc.send_signal(signal.SIGKILL)
+            p.proc.wait(timeout=30)
+            again = c.update("r/0", "r/1", x0, request_id="first")
+            assert again.duplicate and again.seq == first.seq
+            after = c.info()
+            assert after.server_id != info.server_id and after.digest == info.digest
+        assert s.stop() == 0
+    finally:
+        router.kill()
+        router.wait(timeout=10)
+    rep = replay(s.record)
+    assert rep.divergence is None and rep.final_digests()["m"] == info.digest
+    assert rep.snapshots_loaded == (1 if repl_log == "5" else 0)
