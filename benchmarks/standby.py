@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 from mcsm_client.process import McsmProcess, ServerProcess, loopback_endpoint
+from mcsm_client.sampling import sample_planar
 
 
 def _router() -> tuple[McsmProcess, str]:
@@ -44,11 +45,8 @@ def _server(run: Path, name: str, n: int, *args: str) -> ServerProcess:
 
 
 def _odometry(rng: np.random.Generator, n: int, x: float, sigma: float) -> np.ndarray:
-    t = np.zeros((n, 7))
-    t[:, 0] = x + sigma * rng.standard_normal(n)
-    t[:, 1] = sigma * rng.standard_normal(n)
-    t[:, 3] = 1.0
-    return t
+    cov = np.diag([sigma**2, sigma**2, (0.02 * sigma) ** 2])
+    return sample_planar([x, 0.0, 0.0], cov, n_samples=n, rng=rng)
 
 
 def _stream(ep: str, n: int, updates: int, seed: int,

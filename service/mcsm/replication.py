@@ -123,6 +123,17 @@ def _unpack(payload: bytes) -> dict[str, Any]:
     return wire.unpack(payload, max_bytes=_MAX_MSG, max_map_len=1 << 20)
 
 
+def undeclare_all(entities: list[Any]) -> None:
+    """Undeclare Zenoh entities (queryables, tokens, subscribers, publishers) and empty the
+    list; an entity the session already dropped is only logged."""
+    for ent in entities:
+        try:
+            ent.undeclare()
+        except zenoh.ZError as exc:
+            log.debug("undeclare: %s", exc)
+    entities.clear()
+
+
 def _zid_of(key: Any) -> str:
     return str(key).rsplit("/", 1)[-1]
 
@@ -213,12 +224,7 @@ class PrimaryLink:
         ]
 
     def close(self) -> None:
-        for ent in self._entities:
-            try:
-                ent.undeclare()
-            except zenoh.ZError as exc:
-                log.debug("undeclare: %s", exc)
-        self._entities.clear()
+        undeclare_all(self._entities)
 
     # ---------------------------------------------------------------- standbys
     def _on_token(self, sample: zenoh.Sample) -> None:
@@ -401,12 +407,7 @@ class Follower:
             self._thread.join(timeout=10.0)
 
     def _undeclare(self) -> None:
-        for ent in self._entities:
-            try:
-                ent.undeclare()
-            except zenoh.ZError as exc:
-                log.debug("undeclare: %s", exc)
-        self._entities.clear()
+        undeclare_all(self._entities)
 
     @property
     def seq(self) -> int:
@@ -698,5 +699,5 @@ class Follower:
         return self.st
 
 
-__all__ = ["TAKEOVER", "Entry", "Follower", "PrimaryLink", "ReplLog", "DEFAULT_LOG_ENTRIES",
-           "DEFAULT_SYNC_TIMEOUT_S"]
+__all__ = ["TAKEOVER", "undeclare_all", "Entry", "Follower", "PrimaryLink", "ReplLog",
+           "DEFAULT_LOG_ENTRIES", "DEFAULT_SYNC_TIMEOUT_S"]

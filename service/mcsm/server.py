@@ -61,6 +61,7 @@ from mcsm.replication import (
     Entry,
     Follower,
     PrimaryLink,
+    undeclare_all,
 )
 from mcsm.state import DEFAULT_ID_TTL_S, DEFAULT_LRU, MapState
 
@@ -251,12 +252,7 @@ class Server:
             if self._closed:
                 return
             self._closed = True
-        for ent in self._entities:
-            try:
-                ent.undeclare()
-            except zenoh.ZError as exc:
-                log.debug("undeclare: %s", exc)
-        self._entities.clear()
+        undeclare_all(self._entities)
         for f in self.followers.values():
             f.close()
         for link in self.links.values():
@@ -266,11 +262,7 @@ class Server:
             self._worker.join(timeout=60.0)
             if self._worker.is_alive():
                 log.error("worker did not stop within 60 s")
-        for pub in self._publishers.values():
-            try:
-                pub.undeclare()
-            except zenoh.ZError as exc:
-                log.debug("undeclare: %s", exc)
+        undeclare_all(list(self._publishers.values()))
         if self.recorder is not None and not self.recorder.closed:
             if not self.failed.is_set():
                 for st in self.states.values():

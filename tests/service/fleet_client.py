@@ -13,14 +13,13 @@ import sys
 
 import numpy as np
 from mcsm_client.client import MapClient
+from mcsm_client.sampling import sample_planar
 
 
 def _step(rng: np.random.Generator, n: int, x: float, sigma: float) -> np.ndarray:
-    t = np.zeros((n, 7))
-    t[:, 0] = x + sigma * rng.standard_normal(n)
-    t[:, 1] = sigma * rng.standard_normal(n)
-    t[:, 3] = 1.0
-    return t
+    """``x`` metres along x, with ``sigma`` on x and y and a hundredth of it on the heading."""
+    cov = np.diag([sigma**2, sigma**2, (0.01 * sigma) ** 2])
+    return sample_planar([x, 0.0, 0.0], cov, n_samples=n, rng=rng)
 
 
 def main(argv: list[str]) -> int:
