@@ -182,6 +182,8 @@ def part2(n: int, kills: int, tmp: Path, seed: int) -> None:
     for label, xs in (("token gone -> new primary", token_to_primary),
                       ("SIGKILL -> client's next ack", kill_to_ack),
                       ("returning standby caught up", catch_up)):
+        if not xs:
+            continue  # one kill: no standby came back before a next kill
         print(f"  {label:30s} median {statistics.median(xs) * 1e3:7.1f} ms, "
               f"worst {max(xs) * 1e3:7.1f} ms")
 
