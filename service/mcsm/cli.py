@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from mcsm import wire
+from mcsm.core.smap import DEFAULT_GATE
 from mcsm.errors import McsmError
 
 log = logging.getLogger("mcsm")
@@ -100,11 +101,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="cross-covariance estimator of the joint update: 'direct' (default) or "
                         "'endpoints' (through the loop's two endpoint frames; better on pose "
                         "graphs, with --inflation 1.002 in 3-D; tangent space only)")
-    s.add_argument("--gate", type=_gate, default=None, metavar="Q|none",
+    s.add_argument("--gate", type=_gate, default=DEFAULT_GATE, metavar="Q|none",
                    help="loop-closure gate: reject a loop closure whose normalised innovation "
-                        "exceeds the chi-square quantile Q (e.g. 0.99) for its dof; the map is "
-                        "unchanged and the ack's verdict says why (default none; a request "
-                        "marked trusted bypasses it)")
+                        "exceeds the chi-square quantile Q for its dof; the map is unchanged "
+                        f"and the ack's verdict says why (default {DEFAULT_GATE}: one wrong "
+                        "closure wrecks a map, see docs/outliers.md; 'none' turns it off; a "
+                        "request marked trusted bypasses it)")
     s.add_argument("--record", type=Path, default=None, metavar="PATH.mcap",
                    help="new recording file (default recordings/run-<UTC time>.mcap)")
     s.add_argument("--restore", type=Path, default=None, metavar="PATH.mcap",
@@ -283,8 +285,7 @@ def serve(args: argparse.Namespace) -> int:
         maps=list(dict.fromkeys(maps)), prefix=args.prefix,
         map_options={"n_samples": args.samples, "method": args.method, "space": args.space,
                      "analysis": args.analysis, "shrink": args.shrink,
-                     "inflation": args.inflation, "gain": args.gain,
-                     **({"gate": args.gate} if args.gate is not None else {})},
+                     "inflation": args.inflation, "gain": args.gain, "gate": args.gate},
         record=record, restore=args.restore, checkpoint_every=max(1, args.checkpoint_every),
         queue_size=args.queue_size, fsync=args.fsync, lru_size=max(1, args.id_memory),
         id_ttl_s=max(0.0, args.id_ttl_s), snapshot_every=max(1, args.snapshot_every),

@@ -69,6 +69,7 @@ class ServerOptions:
     maps: list[str] = field(default_factory=lambda: [wire.DEFAULT_MAP])
     prefix: str = wire.DEFAULT_PREFIX
     map_options: dict[str, Any] = field(default_factory=lambda: {"n_samples": 1000})
+    """Constructor arguments of new maps (:func:`new_map`; the gate defaults to 0.99)."""
     record: Path | None = None
     restore: Path | None = None
     checkpoint_every: int = 100
@@ -158,12 +159,11 @@ class Server:
         maps = list(o.maps) or ([] if self.states else [wire.DEFAULT_MAP])
         for name in maps:
             if name in self.states:
-                if self.states[name].map.options() != StochasticMap.from_options(
-                        dict(o.map_options)).options():
+                if self.states[name].map.options() != new_map(o.map_options).options():
                     log.warning("map %r: using the restored options %s", name,
                                 self.states[name].map.options())
                 continue
-            st = MapState(name, StochasticMap.from_options(dict(o.map_options)), o.lru_size,
+            st = MapState(name, new_map(o.map_options), o.lru_size,
                           o.id_ttl_s, snapshot_every=o.snapshot_every,
                           snapshots_kept=o.snapshots_kept)
             self.states[name] = st
@@ -430,6 +430,14 @@ class Server:
             queue_length=self._queue.qsize())
 
 
+def new_map(map_options: dict[str, Any]) -> StochasticMap:
+    """A new map from the constructor arguments ``map_options`` (``n_samples`` and keywords):
+    what is not given takes the constructor's default (the gate's: 0.99). Recorded options go
+    through :meth:`StochasticMap.from_options` instead, where a missing gate means none."""
+    o = dict(map_options)
+    return StochasticMap(int(o.pop("n_samples")), **o)
+
+
 def _has(st: MapState, frame: str) -> bool:
     try:
         st.map.is_point(frame)
@@ -446,4 +454,4 @@ def _source(query: zenoh.Query) -> str:
     return str(si.source_id) if si is not None else ""
 
 
-__all__ = ["Server", "ServerOptions", "decode_input"]
+__all__ = ["Server", "ServerOptions", "decode_input", "new_map"]
