@@ -35,6 +35,7 @@ from typing import Any
 
 from mcsm import wire
 from mcsm.core.smap import DEFAULT_GATE
+from mcsm.deferral import DEFAULT_EXPIRY, DeferOptions
 from mcsm.errors import McsmError
 
 log = logging.getLogger("mcsm")
@@ -107,6 +108,12 @@ def build_parser() -> argparse.ArgumentParser:
                         f"and the ack's verdict says why (default {DEFAULT_GATE}: one wrong "
                         "closure wrecks a map, see docs/outliers.md; 'none' turns it off; a "
                         "request marked trusted bypasses it)")
+    s.add_argument("--gate-defer", type=_defer, nargs="?", const=DEFAULT_EXPIRY, default=None,
+                   metavar="K",
+                   help="hold the first loop closure of a revisit as 'pending' until a second "
+                        "one agrees with it through the map's joint samples, then apply both; "
+                        f"after K updates (default {DEFAULT_EXPIRY}) it goes through the gate "
+                        "alone (default off; docs/outliers.md)")
     s.add_argument("--record", type=Path, default=None, metavar="PATH.mcap",
                    help="new recording file (default recordings/run-<UTC time>.mcap)")
     s.add_argument("--restore", type=Path, default=None, metavar="PATH.mcap",
@@ -222,6 +229,16 @@ def _gate(text: str) -> float | None:
     return q
 
 
+def _defer(text: str) -> int:
+    try:
+        k = int(text)
+    except ValueError:
+        k = 0
+    if k < 1:
+        raise argparse.ArgumentTypeError(f"expected a number of updates >= 1, got {text!r}")
+    return k
+
+
 def _inflation(text: str) -> float | str:
     if text == "adaptive":
         return text
@@ -290,7 +307,8 @@ def serve(args: argparse.Namespace) -> int:
         queue_size=args.queue_size, fsync=args.fsync, lru_size=max(1, args.id_memory),
         id_ttl_s=max(0.0, args.id_ttl_s), snapshot_every=max(1, args.snapshot_every),
         snapshots_kept=max(1, args.snapshots_kept),
-        disk_snapshot_every=max(0, args.disk_snapshot_every))
+        disk_snapshot_every=max(0, args.disk_snapshot_every),
+        gate_defer=None if args.gate_defer is None else DeferOptions(expiry=args.gate_defer))
     try:
         for name in opts.maps:
             wire.map_keys(name, opts.prefix)

@@ -47,6 +47,7 @@ import zenoh
 from mcsm import wire
 from mcsm.core.names import namespace_of
 from mcsm.core.smap import StochasticMap
+from mcsm.deferral import DeferOptions
 from mcsm.errors import Busy, Forbidden, InternalError, McsmError, UnknownFrame
 from mcsm.history import DEFAULT_SNAPSHOT_EVERY, DEFAULT_SNAPSHOTS_KEPT
 from mcsm.recording import (
@@ -82,6 +83,9 @@ class ServerOptions:
     disk_snapshot_every: int = 1000
     """Record the whole state every K operations of a map (0: never); --restore starts from
     the latest."""
+    gate_defer: DeferOptions | None = None
+    """``--gate-defer``: hold the first closure of a revisit until a second one agrees (None:
+    off). Recorded in the map's config; a restored map keeps its recorded policy."""
 
 
 @dataclass
@@ -162,10 +166,14 @@ class Server:
                 if self.states[name].map.options() != new_map(o.map_options).options():
                     log.warning("map %r: using the restored options %s", name,
                                 self.states[name].map.options())
+                dfr = self.states[name].deferral
+                if (None if dfr is None else dfr.options) != o.gate_defer:
+                    log.warning("map %r: using the restored --gate-defer policy %s", name,
+                                None if dfr is None else dfr.options.to_dict())
                 continue
             st = MapState(name, new_map(o.map_options), o.lru_size,
                           o.id_ttl_s, snapshot_every=o.snapshot_every,
-                          snapshots_kept=o.snapshots_kept)
+                          snapshots_kept=o.snapshots_kept, gate_defer=o.gate_defer)
             self.states[name] = st
             if self.recorder is not None:
                 self.recorder.config(st, o.checkpoint_every, server_id=self.server_id)
@@ -406,6 +414,7 @@ class Server:
         extra: dict[str, Any] = {"verdict": ack.verdict.to_dict()} if ack.verdict else {}
         if item.op in ("retract", "reinstate"):  # what changed: the target and re-gated inputs
             extra["target"] = req.target
+        if item.op in ("retract", "reinstate") or st.last_changed:  # and held closures decided
             extra["changed"] = {rid: v.to_dict() for rid, v in st.last_changed.items()}
         ev = wire.Event(map=st.name, seq=ack.seq, op=item.op, kind=ack.kind,
                         frames=tuple(frames), component=ack.component, time_ns=time.time_ns(),
