@@ -3,8 +3,8 @@
 ::
 
     mcsm serve [--listen tcp/127.0.0.1:7457] [--map NAME]... [--samples N]
-               [--method joint|paper] [--record PATH.mcap] [--restore PATH.mcap]
-               [--zenoh-config FILE]
+               [--method joint|paper] [--gate Q|none] [--gate-defer [K]]
+               [--record PATH.mcap] [--restore PATH.mcap] [--zenoh-config FILE]
     mcsm replay FILE.mcap [--json]
     mcsm inspect FILE.mcap [--json]
     mcsm recover IN.mcap -o OUT.mcap
