@@ -34,6 +34,7 @@ import numpy.typing as npt
 
 from mcsm import wire
 from mcsm.core import compound, invert, mean_and_cov
+from mcsm.core.at import check_samples
 from mcsm.core.forest import UpdateResult
 from mcsm.core.gate import chi2_quantile
 from mcsm.core.quat import qlog
@@ -276,10 +277,18 @@ class Deferral:
 
     @staticmethod
     def _candidate(smap: StochasticMap, req: Any) -> bool:
-        """A full-frame loop closure between two full frames (a point or a mixed one goes
-        straight to the core, which applies it or refuses it)."""
-        return (req.samples.shape[-1] == 7 and is_loop_closure(smap, req.a, req.b)
-                and not smap.is_point(req.a) and not smap.is_point(req.b))
+        """A valid full-frame loop closure between two full frames: anything else (a point, a
+        mixed or a malformed one) goes straight to the core, which applies it or refuses it,
+        so a request the core would refuse is never held."""
+        if not (req.a != req.b and getattr(req.samples, "ndim", 0) == 2
+                and req.samples.shape[-1] == 7 and is_loop_closure(smap, req.a, req.b)
+                and not smap.is_point(req.a) and not smap.is_point(req.b)):
+            return False
+        try:
+            check_samples(req.samples, smap.n_samples, 7)
+        except McsmError:
+            return False
+        return True
 
     def _hold(self, seq: int, req: Any, count: int, last: int,
               decided: dict[str, wire.Verdict]) -> Outcome:

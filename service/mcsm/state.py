@@ -199,12 +199,14 @@ class MapState:
         if self.deferral is not None:
             self.deferral = self.deferral.copy(defer or DeferState())
             h = self.deferral.state.held
-            if h is not None:  # its id was remembered without its ack: it is pending
+            if h is not None:  # remembered without its ack (or not at all): it is pending
+                v = wire.Verdict("pending", reason="held by --gate-defer",
+                                 stamp_ns=h.req.stamp_ns)
                 hit = self._acks.get(h.request_id)
-                if hit is not None:
-                    v = wire.Verdict("pending", reason="held by --gate-defer",
-                                     stamp_ns=h.req.stamp_ns)
-                    self._acks[h.request_id] = (replace(hit[0], verdict=v), hit[1], hit[2])
+                if hit is None:  # its input is not in this file (a restored server's file)
+                    hit = (wire.Ack(h.request_id, h.seq, "update", "pending", None),
+                           wire.request_fingerprint("update", h.req), time.time_ns())
+                self._acks[h.request_id] = (replace(hit[0], verdict=v), hit[1], hit[2])
         self.history.start(smap, self.seq, self._defer_state())
         self._digest = None
 

@@ -277,3 +277,43 @@ def test_held_closure_survives_sigkill_and_restore(tmp_path: Path,
     rep = replay(d2.record)
     assert rep.identical, rep.divergence
     assert rep.states["default"].digest() == final
+
+
+def test_refused_inputs_are_never_held_and_removed_frames_reject_the_held_one() -> None:
+    reqs, loops = _graph(5)
+    first = loops[0]
+    st = _state(expiry=3)
+    _feed(st, reqs[:first])
+    before, seq = st.digest(), st.seq
+    same = wire.UpdateRequest("self", reqs[first].a, reqs[first].a, reqs[first].samples)
+    with pytest.raises(InvalidOperation):
+        st.apply("update", same, time_ns=0)  # a -> a: refused by the core, not held
+    assert st.digest() == before and st.seq == seq and st.deferral.pending_id() is None  # type: ignore
+    _feed(st, [reqs[first]])
+    assert _status(st, f"r{first}") == "pending"
+    st.apply("remove", wire.RemoveRequest("rm", reqs[first].b), time_ns=0)
+    odometry = [r for r in reqs[first + 1:] if int(r.b[1:]) == int(r.a[1:]) + 1]
+    _feed(st, odometry[:3])
+    v = st.verdict_of(f"r{first}").verdict
+    assert v is not None and v.status == "rejected" and "removed" in v.reason
+
+
+def test_a_restored_servers_file_keeps_the_held_closure(tmp_path: Path) -> None:
+    """--restore of a file written by a restored server (snapshot + tail only: the held
+    closure's own input is not in it): the closure is still pending and then decided."""
+    reqs, loops = _graph(5)
+    first, second = loops[0], loops[1]
+    st = _state()
+    _record(tmp_path / "a.mcap", st, reqs[:second], disk_snapshot_at=second)
+    sink = Recorder(tmp_path / "b.mcap")
+    rep = replay(tmp_path / "a.mcap", sink=sink, from_snapshot=True)
+    sink.close()
+    assert rep.identical and rep.snapshots_loaded == 1
+    rep = replay(tmp_path / "b.mcap", from_snapshot=True)
+    assert rep.identical and rep.snapshots_loaded == 1
+    got = rep.states["default"]
+    assert _status(got, f"r{first}") == "pending"
+    got.apply("update", reqs[second], time_ns=0)
+    st.apply("update", reqs[second], time_ns=0)
+    assert _status(got, f"r{first}") == _status(st, f"r{first}") == "accepted"
+    assert got.digest() == st.digest() and got.verdicts == st.verdicts
