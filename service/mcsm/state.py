@@ -1,5 +1,6 @@
 """The state a recording reproduces: one named map, its sequence number, the request ids it
-remembers (idempotency), its verdict counts and its retract window (:mod:`mcsm.history`).
+remembers (idempotency), its verdict counts, its retract window (:mod:`mcsm.history`) and,
+with ``--gate-defer``, its deferral policy (:mod:`mcsm.deferral`).
 
 The live server and replay (:func:`mcsm.recording.replay`) both apply inputs through
 :meth:`MapState.apply`, so a replayed map is built by the same code path as the live one.
@@ -43,7 +44,8 @@ class MapState:
         self.deferral = None if gate_defer is None else Deferral(gate_defer, smap.gate)
         self.history = History(max(1, int(snapshot_every)), max(1, int(snapshots_kept)))
         self.history.start(smap, 0, self._defer_state())
-        self.last_changed: dict[str, wire.Verdict] = {}  # verdicts the last retract changed
+        # verdicts the last input changed: a retract's re-gated inputs, a decided held closure
+        self.last_changed: dict[str, wire.Verdict] = {}
         self.n_samples = int(smap.n_samples)
         self.seq = 0
         self.lru_size = int(lru_size)

@@ -12,6 +12,7 @@ retract/reinstate stay exact (or refuse a pending target); and over the wire, a 
 from __future__ import annotations
 
 import signal
+import time
 from pathlib import Path
 from typing import Any
 
@@ -261,12 +262,19 @@ def test_held_closure_survives_sigkill_and_restore(tmp_path: Path,
     d2 = start_daemon(tmp_path, "--samples", str(N), "--inflation", "1.002", "--restore",
                       str(d.record), name="d2", listen_on=d.endpoint)
     daemons.append(d2)
-    with MapClient(connect=d2.endpoint, timeout_s=10.0) as c:
+    with MapClient(connect=d2.endpoint, timeout_s=10.0) as c, c.watch() as events:
         assert c.verdict(f"r{first}").status == "pending"  # type: ignore[union-attr]
         ack = c.update(reqs[second].a, reqs[second].b, reqs[second].samples,
                        request_id=reqs[second].request_id)
         assert ack.verdict is not None and ack.verdict.status == "accepted"
         assert c.verdict(f"r{first}").status == "accepted"  # type: ignore[union-attr]
+        # the event of the update that decided it says so
+        ev = None
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline and (ev is None or ev.seq < ack.seq):
+            ev = events.get(0.2)
+        assert ev is not None and ev.seq == ack.seq
+        assert ev.extra["changed"][f"r{first}"]["status"] == "accepted"
         for r in reqs[second + 1:]:
             c.update(r.a, r.b, r.samples, request_id=r.request_id)
         final = c.info().digest
