@@ -11,6 +11,7 @@ retract/reinstate stay exact (or refuse a pending target); and over the wire, a 
 
 from __future__ import annotations
 
+import json
 import signal
 import time
 from pathlib import Path
@@ -179,6 +180,19 @@ def test_replay_and_restore_from_a_snapshot_reproduce_verdicts_and_digests(
     snap = next(i.data for i in RecordingReader(tmp_path / "a.mcap")
                 if i.topic == "/mcsm/snapshot")
     assert snap["deferral"]["held"]["id"] == f"r{loops[0]}"
+    # the records and a pending ack match their schemas
+    from jsonschema import Draft202012Validator
+    from mcsm.recording import schema_bytes
+
+    for record, name in ((config, "record_config.json"), (snap, "record_snapshot.json")):
+        schema = json.loads(schema_bytes(name))
+        assert list(Draft202012Validator(schema).iter_errors(record)) == [], name
+    pending = _state()
+    _feed(pending, reqs[:loops[0] + 1])
+    ack = wire.unpack(wire.encode_ack(pending.verdict_of(f"r{loops[0]}")))
+    assert ack["kind"] == "pending" and ack["verdict"]["status"] == "pending"
+    schema = json.loads(schema_bytes("ack.json"))
+    assert list(Draft202012Validator(schema).iter_errors(ack)) == []
     for from_snapshot in (False, True):
         rep = replay(tmp_path / "a.mcap", from_snapshot=from_snapshot)
         assert rep.identical, rep.divergence
