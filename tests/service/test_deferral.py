@@ -99,6 +99,9 @@ def test_pending_then_applied_when_a_second_closure_agrees() -> None:
     seen = _feed(st, reqs[:first + 1])
     ack = st.verdict_of(f"r{first}")
     assert ack.kind == "pending" and seen[f"r{first}"] == ["pending"]
+    from mcsm_client.cli import _ack_text  # what mcsm-client update prints
+
+    assert "pending" in _ack_text(ack) and "verdict=pending [first closure" in _ack_text(ack)
     assert st.verdicts["pending"] == 1
     assert st.deferral is not None and st.deferral.pending_id() == f"r{first}"
     before = st.digest()
