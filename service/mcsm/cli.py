@@ -511,6 +511,7 @@ def inspect_cmd(args: argparse.Namespace) -> int:
             times.append(item.log_time_ns)
             if item.topic == TOPIC_CONFIG:
                 m["options"] = d.get("options")
+                m["gate_defer"] = d.get("gate_defer")
                 m["restored_from"] = d.get("restored_from")
                 m["arithmetic_version"] = d.get("arithmetic_version",
                                                 reader.arithmetic_version)
@@ -559,7 +560,8 @@ def inspect_cmd(args: argparse.Namespace) -> int:
             "chunk_crcs": reader.n_chunks_crc, "data_crc": reader.data_crc,
             "summary_crc": reader.summary_crc, "arithmetic_version": reader.arithmetic_version,
             "arithmetic_version_here": ARITHMETIC_VERSION, "span_s": span,
-            "maps": {n: {"options": m["options"], "ops": dict(m["ops"]),
+            "maps": {n: {"options": m["options"], "gate_defer": m.get("gate_defer"),
+                         "ops": dict(m["ops"]),
                          "arithmetic_version": m["arithmetic_version"],
                          "frames_named": len(m["frames"]), "last_seq": m["last_seq"],
                          "checkpoints": m["checkpoints"]} for n, m in maps.items()}}))
@@ -582,6 +584,8 @@ def inspect_cmd(args: argparse.Namespace) -> int:
             print(f"  arithmetic version {m['arithmetic_version']}")
         if m.get("restored_from"):
             print(f"  restored from {m['restored_from']}")
+        if m.get("gate_defer"):
+            print(f"  --gate-defer {m['gate_defer']}")
         ops = ", ".join(f"{k} {v}" for k, v in sorted(m["ops"].items())) or "none"
         print(f"  operations: {sum(m['ops'].values())} ({ops}); last seq {m['last_seq']}")
         if m["kinds"]:

@@ -170,7 +170,7 @@ def _record(path: Path, st: MapState, reqs: list[wire.UpdateRequest],
 
 
 def test_replay_and_restore_from_a_snapshot_reproduce_verdicts_and_digests(
-        tmp_path: Path) -> None:
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     reqs, loops = _graph(4)
     reqs[loops[0]] = _wrong(reqs[loops[0]])
     # a disk snapshot while the first closure is held
@@ -180,6 +180,10 @@ def test_replay_and_restore_from_a_snapshot_reproduce_verdicts_and_digests(
     config = next(i.data for i in RecordingReader(tmp_path / "a.mcap")
                   if i.topic == "/mcsm/config")
     assert config["gate_defer"] == DeferOptions().to_dict()
+    from mcsm.cli import main as mcsm_main
+
+    assert mcsm_main(["inspect", str(tmp_path / "a.mcap")]) == 0
+    assert "--gate-defer {'expiry': 25" in capsys.readouterr().out
     snap = next(i.data for i in RecordingReader(tmp_path / "a.mcap")
                 if i.topic == "/mcsm/snapshot")
     assert snap["deferral"]["held"]["id"] == f"r{loops[0]}"
