@@ -198,6 +198,7 @@ def run_map(
         analysis=v.analysis,
         shrink=v.shrink,
         inflation=v.inflation,
+        gate=None,  # the paper's filter alone (the gate: experiments/outliers.py)
     )
     truth_all = landmarks_in_frame(scenario, 0)
     rows: list[dict[str, Any]] = []
@@ -539,7 +540,7 @@ def time_map_updates(
     """
     from mcsm.core.at import compound, invert
 
-    smap = StochasticMap(n_samples, method=method, space=space)
+    smap = StochasticMap(n_samples, method=method, space=space, gate=None)
     truth: dict[str, Array] = {"f0": np.array([0, 0, 0, 1.0, 0, 0, 0])}
     n_frames = 1
     rows: list[dict[str, Any]] = []

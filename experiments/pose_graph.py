@@ -473,6 +473,7 @@ def make_map(config: dict[str, object]) -> object:
         inflation=(config["inflation"] if config["inflation"] == "adaptive"
                    else float(config["inflation"])),  # type: ignore[arg-type]
         gain=str(config.get("gain", "direct")),
+        gate=config.get("gate"),  # type: ignore[arg-type]  # none: the filter alone
     )
 
 

@@ -58,7 +58,7 @@ def run(scenario: str, seed: int, map_seed: int, every: int, space: str, inflati
     graph = make_graph(scenario, poses, seed)
     infl: float | str = inflation if inflation == "adaptive" else float(inflation)
     smap = StochasticMap(n_samples, method="joint", space=space, analysis="ensrf", shrink=4.0,
-                         inflation=infl, gain=gain)
+                         inflation=infl, gain=gain, gate=None)
     rng = np.random.default_rng(map_seed)
     rows = []
     later = graph.edges.max(axis=1)

@@ -221,7 +221,7 @@ def victoria(
     _, dr_lms = dead_reckoning(problem)
     dr_xy = np.stack([dr_lms[j] for j in ids])
 
-    timed = TimedMap(StochasticMap(n_samples, **map_options))
+    timed = TimedMap(StochasticMap(n_samples, **{"gate": None, **map_options}))
     t0 = time.perf_counter()
     stats = play(ds, timed, rng=np.random.default_rng(seed), n_samples=n_samples, bounded=True)
     wall = time.perf_counter() - t0
@@ -319,7 +319,7 @@ def posegraph(
         dr_rel = _relative_to_first(np.stack([dr_poses[i] for i in ids]))
         curves.setdefault("GTSAM LM", lm_rel)
         curves.setdefault("dead reckoning", dr_rel)
-        timed = TimedMap(StochasticMap(n_samples, **map_options))
+        timed = TimedMap(StochasticMap(n_samples, **{"gate": None, **map_options}))
         t0 = time.perf_counter()
         stats = play(ds, timed, rng=np.random.default_rng(seed), n_samples=n_samples)
         wall = time.perf_counter() - t0

@@ -20,7 +20,7 @@ def test_readme_python_example_runs(tmp_path: Path) -> None:
     assert blocks, "the README has no Python example"
     code = blocks[0]
     assert DEFAULT_ENDPOINT in code  # the example talks to a default server...
-    d = start_daemon(tmp_path, "--samples", "1000", "--gate", "0.99")
+    d = start_daemon(tmp_path, "--samples", "1000")
     try:  # ...here one on a free port
         code = code.replace(DEFAULT_ENDPOINT, d.endpoint)
         code += ("\nassert samples.shape == (1000, 7) and cov.shape == (6, 6)\n"
@@ -46,3 +46,22 @@ def test_readme_tour_commands_parse() -> None:
         parser = mcsm_parser() if argv[0] == "mcsm" else client_parser()
         args = [a.replace("SERVER", "127.0.0.1") for a in argv[1:] if a != "\\"]
         parser.parse_args(args)
+
+
+def test_readme_states_the_gate_default() -> None:
+    """The README says what the gate's default is, and it is the default of the core, of
+    ``mcsm serve`` and of a server's new maps."""
+    from mcsm import StochasticMap
+    from mcsm.cli import build_parser
+    from mcsm.core.smap import DEFAULT_GATE
+    from mcsm.server import ServerOptions, new_map
+
+    text = " ".join(README.read_text().split())
+    m = re.search(r"Loop closures are gated at ([0-9.]+) by default", text)
+    assert m is not None, "the README does not state the gate's default"
+    assert float(m.group(1)) == DEFAULT_GATE
+    assert "--gate none" in text
+    assert StochasticMap(10).gate == DEFAULT_GATE
+    assert build_parser().parse_args(["serve"]).gate == DEFAULT_GATE
+    assert build_parser().parse_args(["serve", "--gate", "none"]).gate is None
+    assert new_map(ServerOptions().map_options).gate == DEFAULT_GATE

@@ -264,6 +264,8 @@ def _ack_text(ack: Any) -> str:
             extra += f" (threshold {v.threshold:.3g})"
         if v.reason:
             extra += f" [{v.reason}]"
+    elif v is not None and v.status in ("pending", "rejected"):  # held or refused by deferral
+        extra += f" verdict={v.status} [{v.reason}]"
     return f"ok seq={ack.seq} {ack.kind} component={ack.component}{extra}"
 
 

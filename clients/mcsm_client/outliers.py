@@ -11,12 +11,13 @@ Two policies over a :class:`mcsm.StochasticMap`, pure numpy plus :mod:`mcsm.core
   one had pushed out can come back).
 * :class:`DeferringMap` holds the first loop closure of a revisit as ``pending`` until a second
   closure agrees with it through the map's joint samples (the cycle test
-  ``X1 ⊕ Q(b1→b2) ⊕ X2⁻¹ ⊕ Q(a2→a1) ≈ I`` at the gate's quantile), then applies both through
-  the gate; one that disagrees is rejected and the newer closure waits instead. A pending
-  closure expires after ``expiry`` inputs: it then goes through the gate alone
-  (``on_expiry="gate"``) or is rejected (``"reject"``). This answers the gate's lock-in: an
-  early wrong closure that passes because the map is still uncertain, and then makes the map
-  reject the true ones.
+  ``X1 ⊕ Q(b1→b2) ⊕ X2⁻¹ ⊕ Q(a2→a1) ≈ I`` at the gate's quantile,
+  :func:`mcsm.deferral.cycle_nis`), then applies both through the gate; one that disagrees
+  is rejected and the newer closure waits instead. A pending closure expires after ``expiry``
+  inputs: it then goes through the gate alone (``on_expiry="gate"``) or is rejected
+  (``"reject"``). This answers the gate's lock-in: an early wrong closure that passes because
+  the map is still uncertain, and then makes the map reject the true ones. The server runs
+  the same policy (``mcsm serve --gate-defer``, :mod:`mcsm.deferral`).
 
 Statuses: ``accepted``, ``rejected`` (by the gate or the cycle test), ``pending``,
 ``retracted``, ``reinstated`` (issue 16 §2).
@@ -29,9 +30,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
-from mcsm.core import StochasticMap, Verdict, compound, invert, mean_and_cov
+from mcsm.core import StochasticMap, Verdict
 from mcsm.core.gate import chi2_quantile
-from mcsm.core.quat import qlog
+from mcsm.deferral import cycle_nis, is_loop_closure  # the server's --gate-defer uses them too
 
 Array = npt.NDArray[np.float64]
 
@@ -55,11 +56,6 @@ class Outcome:
     status: str
     verdict: Verdict
     kind: str = ""
-
-
-def is_loop_closure(smap: StochasticMap, a: str, b: str) -> bool:
-    """True when ``a → b`` would close a loop (both frames known, in one component)."""
-    return a in smap and b in smap and smap.root(a) == smap.root(b)
 
 
 # ------------------------------------------------------------------------------------ ledger
@@ -148,31 +144,6 @@ class Ledger:
 
 
 # --------------------------------------------------------------------------------- deferral
-def cycle_nis(smap: StochasticMap, first: Record, second: Record
-              ) -> tuple[float, int, float]:
-    """NIS and dof of the cycle ``X1 ⊕ Q(b1→b2) ⊕ X2⁻¹ ⊕ Q(a2→a1)`` against the identity,
-    and how loose the map's part of the cycle is.
-
-    ``Q`` are the map's joint samples (row i of both queries is one draw of the map), ``X1``,
-    ``X2`` the two closures' samples; the covariance is the cycle's own sample covariance,
-    over its live dimensions (3 planar, 6 in 3-D). ``looseness`` is
-    ``(tr C(Q_a) + tr C(Q_b)) / (tr C(X1) + tr C(X2))``: a cycle through a long stretch of
-    odometry (two closures to different passes) is loose and tests almost nothing.
-    """
-    q_b = smap.query(first.b, second.b)
-    q_a = smap.query(second.a, first.a)
-    cyc = compound(compound(compound(first.samples, q_b), invert(second.samples)), q_a)
-    mean, cov = mean_and_cov(cyc)
-    e = np.concatenate([mean[:3], qlog(mean[3:])])
-    w, v = np.linalg.eigh(0.5 * (cov + cov.T))
-    live = w > 1e-9 * max(float(w.max()), 1e-300)
-    u = v[:, live].T @ e
-    tr_map = float(np.trace(mean_and_cov(q_a)[1]) + np.trace(mean_and_cov(q_b)[1]))
-    tr_obs = float(np.trace(mean_and_cov(first.samples)[1])
-                   + np.trace(mean_and_cov(second.samples)[1]))
-    return float(np.sum(u * u / w[live])), int(live.sum()), tr_map / max(tr_obs, 1e-300)
-
-
 class DeferringMap:
     """Gate plus deferral of the first loop closure of a revisit, over a :class:`Ledger`.
 

@@ -3,9 +3,9 @@
 ::
 
     mcsm serve [--listen tcp/127.0.0.1:7457] [--map NAME]... [--samples N]
-               [--method joint|paper] [--record PATH.mcap] [--restore PATH.mcap]
-               [--zenoh-config FILE] [--connect ENDPOINT]...
-               [--standby-of MAP]... [--sync-standbys K]
+               [--method joint|paper] [--gate Q|none] [--gate-defer [K]]
+               [--record PATH.mcap] [--restore PATH.mcap] [--zenoh-config FILE]
+               [--connect ENDPOINT]... [--standby-of MAP]... [--sync-standbys K]
     mcsm router --listen ENDPOINT
     mcsm replay FILE.mcap [--json]
     mcsm inspect FILE.mcap [--json]
@@ -36,6 +36,8 @@ from pathlib import Path
 from typing import Any
 
 from mcsm import ops, wire
+from mcsm.core.smap import DEFAULT_GATE
+from mcsm.deferral import DEFAULT_EXPIRY, DeferOptions
 from mcsm.errors import McsmError
 
 log = logging.getLogger("mcsm")
@@ -108,11 +110,18 @@ def build_parser() -> argparse.ArgumentParser:
                    help="cross-covariance estimator of the joint update: 'direct' (default) or "
                         "'endpoints' (through the loop's two endpoint frames; better on pose "
                         "graphs, with --inflation 1.002 in 3-D; tangent space only)")
-    s.add_argument("--gate", type=_gate, default=None, metavar="Q|none",
+    s.add_argument("--gate", type=_gate, default=DEFAULT_GATE, metavar="Q|none",
                    help="loop-closure gate: reject a loop closure whose normalised innovation "
-                        "exceeds the chi-square quantile Q (e.g. 0.99) for its dof; the map is "
-                        "unchanged and the ack's verdict says why (default none; a request "
-                        "marked trusted bypasses it)")
+                        "exceeds the chi-square quantile Q for its dof; the map is unchanged "
+                        f"and the ack's verdict says why (default {DEFAULT_GATE}: one wrong "
+                        "closure wrecks a map, see docs/outliers.md; 'none' turns it off; a "
+                        "request marked trusted bypasses it)")
+    s.add_argument("--gate-defer", type=_defer, nargs="?", const=DEFAULT_EXPIRY, default=None,
+                   metavar="K",
+                   help="hold the first loop closure of a revisit as 'pending' until a second "
+                        "one agrees with it through the map's joint samples, then apply both; "
+                        f"after K updates (default {DEFAULT_EXPIRY}) it goes through the gate "
+                        "alone (default off; docs/outliers.md)")
     s.add_argument("--record", type=Path, default=None, metavar="PATH.mcap",
                    help="new recording file (default recordings/run-<UTC time>.mcap)")
     s.add_argument("--restore", type=Path, default=None, metavar="PATH.mcap",
@@ -246,6 +255,16 @@ def _gate(text: str) -> float | None:
     return q
 
 
+def _defer(text: str) -> int:
+    try:
+        k = int(text)
+    except ValueError:
+        k = 0
+    if k < 1:
+        raise argparse.ArgumentTypeError(f"expected a number of updates >= 1, got {text!r}")
+    return k
+
+
 def _inflation(text: str) -> float | str:
     if text == "adaptive":
         return text
@@ -310,15 +329,15 @@ def serve(args: argparse.Namespace) -> int:
         maps=list(dict.fromkeys(maps)), prefix=args.prefix,
         map_options={"n_samples": args.samples, "method": args.method, "space": args.space,
                      "analysis": args.analysis, "shrink": args.shrink,
-                     "inflation": args.inflation, "gain": args.gain,
-                     **({"gate": args.gate} if args.gate is not None else {})},
+                     "inflation": args.inflation, "gain": args.gain, "gate": args.gate},
         record=record, restore=args.restore, checkpoint_every=max(1, args.checkpoint_every),
         queue_size=args.queue_size, fsync=args.fsync, lru_size=max(1, args.id_memory),
         id_ttl_s=max(0.0, args.id_ttl_s), snapshot_every=max(1, args.snapshot_every),
         snapshots_kept=max(1, args.snapshots_kept),
         disk_snapshot_every=max(0, args.disk_snapshot_every), standby_of=standby_of,
         sync_standbys=max(0, args.sync_standbys), sync_timeout_s=max(0.01, args.sync_timeout),
-        repl_log=max(1, args.repl_log))
+        repl_log=max(1, args.repl_log),
+        gate_defer=None if args.gate_defer is None else DeferOptions(expiry=args.gate_defer))
     try:
         for name in [*opts.maps, *opts.standby_of]:
             wire.map_keys(name, opts.prefix)
@@ -521,6 +540,7 @@ def inspect_cmd(args: argparse.Namespace) -> int:
             times.append(item.log_time_ns)
             if item.topic == TOPIC_CONFIG:
                 m["options"] = d.get("options")
+                m["gate_defer"] = d.get("gate_defer")
                 m["restored_from"] = d.get("restored_from")
                 m["arithmetic_version"] = d.get("arithmetic_version",
                                                 reader.arithmetic_version)
@@ -569,7 +589,8 @@ def inspect_cmd(args: argparse.Namespace) -> int:
             "chunk_crcs": reader.n_chunks_crc, "data_crc": reader.data_crc,
             "summary_crc": reader.summary_crc, "arithmetic_version": reader.arithmetic_version,
             "arithmetic_version_here": ARITHMETIC_VERSION, "span_s": span,
-            "maps": {n: {"options": m["options"], "ops": dict(m["ops"]),
+            "maps": {n: {"options": m["options"], "gate_defer": m.get("gate_defer"),
+                         "ops": dict(m["ops"]),
                          "arithmetic_version": m["arithmetic_version"],
                          "frames_named": len(m["frames"]), "last_seq": m["last_seq"],
                          "checkpoints": m["checkpoints"]} for n, m in maps.items()}}))
@@ -592,6 +613,8 @@ def inspect_cmd(args: argparse.Namespace) -> int:
             print(f"  arithmetic version {m['arithmetic_version']}")
         if m.get("restored_from"):
             print(f"  restored from {m['restored_from']}")
+        if m.get("gate_defer"):
+            print(f"  --gate-defer {m['gate_defer']}")
         ops = ", ".join(f"{k} {v}" for k, v in sorted(m["ops"].items())) or "none"
         print(f"  operations: {sum(m['ops'].values())} ({ops}); last seq {m['last_seq']}")
         if m["kinds"]:

@@ -28,6 +28,7 @@ import numpy as np
 
 from mcsm import wire
 from mcsm.core.names import is_namespace, namespace_of
+from mcsm.deferral import gated_update
 from mcsm.errors import BadMessage, Forbidden, McsmError, UnknownFrame
 
 if TYPE_CHECKING:
@@ -145,11 +146,8 @@ def _has(smap: StochasticMap, frame: str) -> bool:
 
 def _update_change(smap: StochasticMap, req: wire.UpdateRequest, trusted: bool = False
                    ) -> Change:
-    r = smap.update(req.a, req.b, req.samples, trusted=req.trusted or trusted)
-    v = r.verdict
-    return Change(r.kind, r.component, frames_added=tuple(r.frames_added),
-                  verdict=wire.Verdict(v.status, v.nis, v.dof, v.threshold, v.reason,
-                                       req.stamp_ns))
+    r, v = gated_update(smap, req, trusted)
+    return Change(r.kind, r.component, frames_added=tuple(r.frames_added), verdict=v)
 
 
 def _update_parts(req: wire.UpdateRequest) -> list[bytes | memoryview]:
@@ -399,6 +397,8 @@ def event(name: str, st: MapState, req: Any, ack: wire.Ack, *, time_ns: int,
     """The event published after ``ack``: the frames it touched and what else changed."""
     op = get(name)
     extra: dict[str, Any] = {"verdict": ack.verdict.to_dict()} if ack.verdict else {}
+    if st.last_changed:  # held closures (--gate-defer) this input decided
+        extra["changed"] = {rid: v.to_dict() for rid, v in st.last_changed.items()}
     extra.update(op.event_extra(st, req))
     return wire.Event(map=st.name, seq=ack.seq, op=name, kind=ack.kind,
                       frames=tuple(op.event_frames(req, ack)), component=ack.component,

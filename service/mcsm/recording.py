@@ -75,6 +75,7 @@ from mcap.writer import CompressionType, Writer
 from mcsm import __version__, ops, wire
 from mcsm.core import ARITHMETIC_VERSION
 from mcsm.core.smap import StochasticMap
+from mcsm.deferral import DeferOptions, DeferState
 from mcsm.errors import McsmError
 from mcsm.history import DEFAULT_SNAPSHOT_EVERY, DEFAULT_SNAPSHOTS_KEPT
 from mcsm.state import DEFAULT_LRU, MapState
@@ -417,6 +418,8 @@ class Recorder:
                                  "checkpoint_every": int(checkpoint_every), "time_ns": now,
                                  "snapshot_every": state.history.snapshot_every,
                                  "snapshots_kept": state.history.snapshots_kept,
+                                 "gate_defer": (None if state.deferral is None
+                                                else state.deferral.options.to_dict()),
                                  "server_id": server_id, "restored_from": restored_from,
                                  "software": f"mcsm {__version__}",
                                  "arithmetic_version": ARITHMETIC_VERSION}, now, 0)
@@ -444,6 +447,8 @@ class Recorder:
         self._add(TOPIC_SNAPSHOT, {"map": state.name, "seq": state.seq,
                                    "digest": state.digest(), "format": SNAPSHOT_FORMAT,
                                    "verdicts": dict(state.verdicts),
+                                   "deferral": (None if state.deferral is None
+                                                else state.deferral.state.encode()),
                                    "state": encode_snapshot(state.map.snapshot())}, now,
                   state.seq)
         self._flush(self._fsync)
@@ -798,12 +803,14 @@ def replay(path: str | os.PathLike[str], *, sink: Recorder | None = None,
                 continue  # a map's config is written once; ignore repeats
             try:
                 smap = StochasticMap.from_options(dict(d["options"]))
+                defer = DeferOptions.from_dict(d.get("gate_defer"))  # absent: no deferral
             except (McsmError, KeyError, TypeError, ValueError) as exc:
                 raise RecordingError(str(path), f"bad options for map {name!r}: {exc}"
                                      ) from None
             st = MapState(name, smap, lru_size,
                           snapshot_every=int(d.get("snapshot_every", DEFAULT_SNAPSHOT_EVERY)),
-                          snapshots_kept=int(d.get("snapshots_kept", DEFAULT_SNAPSHOTS_KEPT)))
+                          snapshots_kept=int(d.get("snapshots_kept", DEFAULT_SNAPSHOTS_KEPT)),
+                          gate_defer=defer)
             rep.states[name] = st
             rep.configs[name] = dict(d)
             version = d.get("arithmetic_version", reader.arithmetic_version)
@@ -829,7 +836,9 @@ def replay(path: str | os.PathLike[str], *, sink: Recorder | None = None,
                 # start here: the inputs before were skipped (or are not in this file)
                 try:
                     snap = decode_snapshot(d["state"], st.n_samples)
-                    st.restore(seq, StochasticMap.from_snapshot(snap), d.get("verdicts", {}))
+                    dfr = d.get("deferral")
+                    st.restore(seq, StochasticMap.from_snapshot(snap), d.get("verdicts", {}),
+                               None if dfr is None else DeferState.decode(dfr, st.n_samples))
                 except (McsmError, KeyError, TypeError, ValueError) as exc:
                     raise RecordingError(str(path), f"unreadable snapshot of map {name!r} "
                                          f"at seq {seq}: {exc}") from None

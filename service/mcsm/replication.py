@@ -51,6 +51,7 @@ import zenoh
 
 from mcsm import wire
 from mcsm.core.smap import StochasticMap
+from mcsm.deferral import DeferOptions, DeferState
 from mcsm.errors import BadMessage, McsmError, NotReplicated
 from mcsm.recording import INPUT_TOPICS, decode_input, decode_snapshot, encode_snapshot
 from mcsm.state import MapState
@@ -216,7 +217,9 @@ class PrimaryLink:
                         "checkpoint_every": o.checkpoint_every, "sync_standbys": self.sync,
                         "disk_snapshot_every": o.disk_snapshot_every,
                         "snapshot_every": st.history.snapshot_every,
-                        "snapshots_kept": st.history.snapshots_kept}
+                        "snapshots_kept": st.history.snapshots_kept,
+                        "gate_defer": (None if st.deferral is None
+                                       else st.deferral.options.to_dict())}
         s = server.session
         self._entities: list[Any] = [
             s.liveliness().declare_subscriber(keys.standby_any, self._on_token, history=True),
@@ -362,8 +365,8 @@ class PrimaryLink:
     def _take_snapshot(self) -> tuple[int, bytes]:
         st = self.st
         blob = _pack({"seq": st.seq, "digest": st.digest(), "verdicts": dict(st.verdicts),
-                          "state": encode_snapshot(st.map.snapshot()),
-                          "ids": st.export_ids()})
+                      "state": encode_snapshot(st.map.snapshot()), "ids": st.export_ids(),
+                      "deferral": None if st.deferral is None else st.deferral.state.encode()})
         self.log.keep_snapshot(st.seq, blob)
         return st.seq, blob
 
@@ -493,7 +496,8 @@ class Follower:
             smap = StochasticMap.from_options(dict(config["options"]))
             st = MapState(self.name, smap, o.lru_size, o.id_ttl_s,
                           snapshot_every=int(config["snapshot_every"]),
-                          snapshots_kept=int(config["snapshots_kept"]))
+                          snapshots_kept=int(config["snapshots_kept"]),
+                          gate_defer=DeferOptions.from_dict(config.get("gate_defer")))
             self.checkpoint_every = max(1, int(config["checkpoint_every"]))
             self.disk_snapshot_every = max(0, int(config.get("disk_snapshot_every", 0)))
             rec = self.server.recorder
@@ -565,8 +569,10 @@ class Follower:
             return
         st = self._ensure_state(config)
         smap = StochasticMap.from_snapshot(decode_snapshot(d["state"], st.n_samples))
-        st.restore(seq, smap, dict(d.get("verdicts", {})))
         st.import_ids(list(d.get("ids", [])))
+        dfr = d.get("deferral")  # the held closure (--gate-defer), if any
+        st.restore(seq, smap, dict(d.get("verdicts", {})),
+                   None if dfr is None else DeferState.decode(dfr, st.n_samples))
         if st.digest() != str(d["digest"]):
             self._stop_following(f"the primary's snapshot of seq {seq} does not load to its "
                                  "digest")

@@ -46,6 +46,7 @@ import zenoh
 
 from mcsm import ops, wire
 from mcsm.core.smap import StochasticMap
+from mcsm.deferral import DeferOptions
 from mcsm.errors import Busy, InternalError, McsmError
 from mcsm.history import DEFAULT_SNAPSHOT_EVERY, DEFAULT_SNAPSHOTS_KEPT
 from mcsm.recording import (
@@ -77,6 +78,7 @@ class ServerOptions:
     maps: list[str] = field(default_factory=lambda: [wire.DEFAULT_MAP])
     prefix: str = wire.DEFAULT_PREFIX
     map_options: dict[str, Any] = field(default_factory=lambda: {"n_samples": 1000})
+    """Constructor arguments of new maps (:func:`new_map`; the gate defaults to 0.99)."""
     record: Path | None = None
     restore: Path | None = None
     checkpoint_every: int = 100
@@ -89,6 +91,9 @@ class ServerOptions:
     disk_snapshot_every: int = 1000
     """Record the whole state every K operations of a map (0: never); --restore starts from
     the latest."""
+    gate_defer: DeferOptions | None = None
+    """``--gate-defer``: hold the first closure of a revisit until a second one agrees (None:
+    off). Recorded in the map's config; a restored map keeps its recorded policy."""
     standby_of: list[str] = field(default_factory=list)
     """Maps this server follows as a hot standby (:mod:`mcsm.replication`)."""
     sync_standbys: int = 0
@@ -192,14 +197,17 @@ class Server:
         maps = list(o.maps) or ([] if self.states or o.standby_of else [wire.DEFAULT_MAP])
         for name in maps:
             if name in self.states:
-                if self.states[name].map.options() != StochasticMap.from_options(
-                        dict(o.map_options)).options():
+                if self.states[name].map.options() != new_map(o.map_options).options():
                     log.warning("map %r: using the restored options %s", name,
                                 self.states[name].map.options())
+                dfr = self.states[name].deferral
+                if (None if dfr is None else dfr.options) != o.gate_defer:
+                    log.warning("map %r: using the restored --gate-defer policy %s", name,
+                                None if dfr is None else dfr.options.to_dict())
                 continue
-            st = MapState(name, StochasticMap.from_options(dict(o.map_options)), o.lru_size,
+            st = MapState(name, new_map(o.map_options), o.lru_size,
                           o.id_ttl_s, snapshot_every=o.snapshot_every,
-                          snapshots_kept=o.snapshots_kept)
+                          snapshots_kept=o.snapshots_kept, gate_defer=o.gate_defer)
             self.states[name] = st
             if self.recorder is not None:
                 self.recorder.config(st, o.checkpoint_every, server_id=self.server_id)
@@ -507,6 +515,14 @@ class Server:
             sync_standbys=self.links[st.name].sync if st.name in self.links else 0)
 
 
+def new_map(map_options: dict[str, Any]) -> StochasticMap:
+    """A new map from the constructor arguments ``map_options`` (``n_samples`` and keywords):
+    what is not given takes the constructor's default (the gate's: 0.99). Recorded options go
+    through :meth:`StochasticMap.from_options` instead, where a missing gate means none."""
+    o = dict(map_options)
+    return StochasticMap(int(o.pop("n_samples")), **o)
+
+
 def _source(query: zenoh.Query) -> str:
     try:
         si = query.source_info
@@ -515,4 +531,4 @@ def _source(query: zenoh.Query) -> str:
     return str(si.source_id) if si is not None else ""
 
 
-__all__ = ["Server", "ServerOptions", "decode_input"]
+__all__ = ["Server", "ServerOptions", "decode_input", "new_map"]

@@ -1,5 +1,6 @@
 """The state a recording reproduces: one named map, its sequence number, the request ids it
-remembers (idempotency), its verdict counts and its retract window (:mod:`mcsm.history`).
+remembers (idempotency), its verdict counts, its retract window (:mod:`mcsm.history`) and,
+with ``--gate-defer``, its deferral policy (:mod:`mcsm.deferral`).
 
 The live server and replay (:func:`mcsm.recording.replay`) both apply inputs through
 :meth:`MapState.apply`, so a replayed map is built by the same code path as the live one.
@@ -14,6 +15,7 @@ from typing import Any
 
 from mcsm import ops, wire
 from mcsm.core.smap import StochasticMap
+from mcsm.deferral import DeferOptions, Deferral, DeferState
 from mcsm.errors import InvalidOperation, McsmError, RequestIdReused
 from mcsm.history import DEFAULT_SNAPSHOT_EVERY, DEFAULT_SNAPSHOTS_KEPT, History
 
@@ -34,12 +36,16 @@ class MapState:
     def __init__(self, name: str, smap: StochasticMap, lru_size: int = DEFAULT_LRU,
                  id_ttl_s: float = DEFAULT_ID_TTL_S, *,
                  snapshot_every: int = DEFAULT_SNAPSHOT_EVERY,
-                 snapshots_kept: int = DEFAULT_SNAPSHOTS_KEPT) -> None:
+                 snapshots_kept: int = DEFAULT_SNAPSHOTS_KEPT,
+                 gate_defer: DeferOptions | None = None) -> None:
         self.name = name
         self.map = smap
+        # --gate-defer: first closures of a revisit held until a second one agrees
+        self.deferral = None if gate_defer is None else Deferral(gate_defer, smap.gate)
         self.history = History(max(1, int(snapshot_every)), max(1, int(snapshots_kept)))
-        self.history.start(smap, 0)
-        self.last_changed: dict[str, wire.Verdict] = {}  # verdicts the last retract changed
+        self.history.start(smap, 0, self._defer_state())
+        # verdicts the last input changed: a retract's re-gated inputs, a decided held closure
+        self.last_changed: dict[str, wire.Verdict] = {}
         self.n_samples = int(smap.n_samples)
         self.seq = 0
         self.lru_size = int(lru_size)
@@ -91,8 +97,7 @@ class MapState:
     def apply(self, op: str, req: Any, *, time_ns: int | None = None,
               fingerprint: str | None = None) -> wire.Ack:
         """Apply one decoded input received at ``time_ns``; returns its ack (seq ``seq + 1``).
-        ``op`` names a state-changing operation of :mod:`mcsm.ops`; ``fingerprint`` is
-        ``ops.fingerprint(op, req)`` if the caller has it.
+        ``fingerprint`` is ``ops.fingerprint(op, req)`` if the caller has it.
 
         Raises
         ------
@@ -101,7 +106,24 @@ class MapState:
         """
         self.last_changed = {}
         operation = ops.get(op)
-        if operation.retract is not None:
+        if op == "update" and self.deferral is not None:
+            out = self.deferral.update(self.map, self.seq + 1, req)
+            verdict, r = out.verdict, out.result
+            if r is None:  # held (pending), or refused after the held one went in
+                ack = wire.Ack(req.request_id, self.seq + 1, op, verdict.status,
+                               self.map.root(req.a), verdict=verdict)
+            else:
+                ack = wire.Ack(req.request_id, self.seq + 1, op, r.kind, r.component,
+                               frames_added=tuple(r.frames_added), verdict=verdict)
+            self.verdicts[verdict.status] += 1
+            for decided in out.decided.values():  # a held closure decided now: was pending
+                self.verdicts["pending"] -= 1
+                self.verdicts[decided.status] += 1
+            self.verdicts += Counter()  # drop zero counts
+            self._set_verdicts(out.decided)
+            self.history.decided(out.decided)
+            self.last_changed = dict(out.decided)
+        elif operation.retract is not None:
             ack = self._retract(op, req, operation.retract)
         elif operation.change is not None:
             c = operation.change(self.map, req)
@@ -118,36 +140,69 @@ class MapState:
         fp = fingerprint if fingerprint is not None else ops.fingerprint(op, req)
         self._acks[req.request_id] = (ack, fp, t_ns)
         self._forget(t_ns)
-        self.history.record(ack.seq, op, req.request_id, req, ack.verdict, self.map)
+        self.history.record(ack.seq, op, req.request_id, req, ack.verdict, self.map,
+                            self._defer_state())
         return ack
+
+    def _defer_state(self) -> DeferState | None:
+        return None if self.deferral is None else self.deferral.state
+
+    def _set_verdicts(self, verdicts: dict[str, wire.Verdict]) -> None:
+        """The remembered acks of these request ids now carry these verdicts."""
+        for rid, v in verdicts.items():
+            hit = self._acks.get(rid)
+            if hit is not None:
+                self._acks[rid] = (replace(hit[0], verdict=v), hit[1], hit[2])
 
     def _retract(self, op: str, req: Any, retract: bool) -> wire.Ack:
         """Leave the update ``req.target`` out (``retract``) or put it back (reinstate):
         restore the last snapshot before it and apply every later input of the window again."""
         target = self.history.target(req.target, retract)
-        before = {e.request_id: e.verdict for e in self.history.log
-                  if ops.get(e.op).retractable}
-        smap, changed, commit = self.history.rebuild(target, retract, self.map.threads)
+        before: dict[str, wire.Verdict | None] = {
+            e.request_id: e.verdict for e in self.history.log if ops.get(e.op).retractable}
+        held = None if self.deferral is None else self.deferral.pending_id()
+        smap, changed, commit, dfr = self.history.rebuild(target, retract, self.map.threads,
+                                                          self.deferral)
         self.map = smap
+        self.deferral = dfr
         commit()
-        for rid, v in changed.items():
+        for rid in list(changed):
             old = before.get(rid)
+            if rid not in before:  # a held closure from before the window's log
+                hit = self._acks.get(rid)
+                old = hit[0].verdict if hit is not None else None
+                if old is None and rid == held:
+                    old = wire.Verdict("pending")
+                if old == changed[rid]:
+                    del changed[rid]
+                    continue
             if old is not None:
                 self.verdicts[old.status] -= 1
-            self.verdicts[v.status] += 1
-            hit = self._acks.get(rid)
-            if hit is not None:
-                self._acks[rid] = (replace(hit[0], verdict=v), hit[1], hit[2])
+            self.verdicts[changed[rid].status] += 1
+        self._set_verdicts(changed)
         self.verdicts += Counter()  # drop zero counts
         self.last_changed = changed
         return wire.Ack(req.request_id, self.seq + 1, op, op, None, verdict=target.verdict)
 
-    def restore(self, seq: int, smap: StochasticMap, verdicts: dict[str, int]) -> None:
-        """Continue from a recorded snapshot: the map as it was after operation ``seq``."""
+    def restore(self, seq: int, smap: StochasticMap, verdicts: dict[str, int],
+                defer: DeferState | None = None) -> None:
+        """Continue from a recorded snapshot: the map as it was after operation ``seq``, and
+        the deferral state then (``--gate-defer``: the held closure, if any)."""
         smap.threads = self.map.threads
         self.map, self.seq = smap, int(seq)
         self.verdicts = Counter({str(k): int(v) for k, v in verdicts.items()})
-        self.history.start(smap, self.seq)
+        if self.deferral is not None:
+            self.deferral = self.deferral.copy(defer or DeferState())
+            h = self.deferral.state.held
+            if h is not None:  # remembered without its ack (or not at all): it is pending
+                v = wire.Verdict("pending", reason="held by --gate-defer",
+                                 stamp_ns=h.req.stamp_ns)
+                hit = self._acks.get(h.request_id)
+                if hit is None:  # its input is not in this file (a restored server's file)
+                    hit = (wire.Ack(h.request_id, h.seq, "update", "pending", None),
+                           ops.fingerprint("update", h.req), time.time_ns())
+                self._acks[h.request_id] = (replace(hit[0], verdict=v), hit[1], hit[2])
+        self.history.start(smap, self.seq, self._defer_state())
         self._digest = None
 
     def remember(self, op: str, req: Any, seq: int, time_ns: int) -> None:

@@ -114,7 +114,13 @@ def test_map_target_wraps_in_process_map() -> None:
 def test_play_3d_dataset(name: str) -> None:
     pytest.importorskip("gtsam")
     ds = read_dataset(f"gtsam:{name}")
-    m = StochasticMap(200)
+    m = StochasticMap(200, gate=None)
     stats = play(ds, m, rng=np.random.default_rng(47))
     assert stats.results == {"new_component": 1, "new_frame": 3, "loop_closure": 2}
     assert np.isfinite(m.query("x0", "x4")).all()
+    # With the default gate (0.99) the closure x3 -> x0 is refused: against the file's own
+    # covariances it is tens of thousands of sigma-squared off (NIS ~4e4 over 6 dof, seeds 47-50).
+    gated = StochasticMap(200)
+    stats = play(ds, gated, rng=np.random.default_rng(47))
+    assert stats.results == {"new_component": 1, "new_frame": 3, "loop_closure": 1,
+                             "rejected": 1}

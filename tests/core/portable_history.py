@@ -27,7 +27,7 @@ OPTION_SETS: dict[str, dict[str, object]] = {
     "adaptive": {"inflation": "adaptive"},
     "quaternion+enkf": {"space": "quaternion", "analysis": "enkf", "shrink": None},
     "denkf+1.01": {"analysis": "denkf", "inflation": 1.01},
-    "gate": {"gate": 0.99},
+    "no gate": {"gate": None},
     "paper": {"method": "paper"},
 }
 

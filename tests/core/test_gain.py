@@ -68,7 +68,7 @@ def test_endpoints_gain_keeps_a_weak_but_well_determined_correlation() -> None:
         z[:, :3] += innovation - z[:, :3].mean(axis=0)
         z[:, :3] += sub.edges[2, :, :3].mean(axis=0) - sub.edges[1, :, :3].mean(axis=0)
         for gain in moves:
-            m = StochasticMap(n, gain=gain)
+            m = StochasticMap(n, gain=gain, gate=None)  # a 3 m innovation on purpose
             m.import_component(sub)
             before = m.marginal("r", "x")[0][:3]
             m.update("a", "b", z)

@@ -21,6 +21,7 @@ import pytest
 from mcsm import StochasticMap
 from mcsm.core.gate import chi2_quantile
 from mcsm.core.quat import qexp, qmul
+from mcsm.core.smap import DEFAULT_GATE
 from mcsm.errors import InvalidOperation
 
 from experiments.posegraph_sim import sample_measurement, simulate_2d, simulate_3d
@@ -118,7 +119,7 @@ def test_true_closure_passes_and_gate_off_applies_everything() -> None:
     assert r.kind == "loop_closure" and r.verdict.status == "accepted"
     assert r.verdict.nis is not None and r.verdict.nis < r.verdict.threshold  # type: ignore[operator]
 
-    off = StochasticMap(N)  # gate=None: the verdict is measured but never rejects
+    off = StochasticMap(N, gate=None)  # the verdict is measured but never rejects
     rng = np.random.default_rng(1)
     for k in range(1, 12):
         off.update(f"p{k - 1}", f"p{k}", _planar_at(rng, N, 1.0, 0.0, 0.0, 0.05, np.radians(1)))
@@ -247,8 +248,16 @@ def test_gate_option_round_trips_and_validates() -> None:
     m = StochasticMap(N, gate=0.99)
     assert m.options()["gate"] == 0.99
     assert StochasticMap.from_options(m.options()).gate == 0.99
-    assert "gate" not in StochasticMap(N).options()
-    assert StochasticMap(N, gate=0.99).state_digest() != StochasticMap(N).state_digest()
+    # the default is the gate at 0.99; None turns it off and leaves the key out of the options
+    assert StochasticMap(N).gate == DEFAULT_GATE == 0.99
+    assert StochasticMap(N).options()["gate"] == 0.99
+    assert "gate" not in StochasticMap(N, gate=None).options()
+    assert StochasticMap(N, gate=0.99).state_digest() != StochasticMap(N, gate=None).state_digest()
+    # recorded options without the key (recordings made before the default changed) mean off
+    old = {k: v for k, v in StochasticMap(N).options().items() if k != "gate"}
+    assert StochasticMap.from_options(old).gate is None
+    assert StochasticMap.from_options(old).state_digest() == \
+        StochasticMap(N, gate=None).state_digest()
     for bad in (0.0, 1.0, 1.5, True, "0.99"):
         with pytest.raises(InvalidOperation):
             StochasticMap(N, gate=bad)  # type: ignore[arg-type]

@@ -247,7 +247,7 @@ def test_adaptive_inflation_reacts_to_surprising_loop_closures_only() -> None:
     n = 400
 
     def build() -> StochasticMap:
-        m = StochasticMap(n, inflation="adaptive")
+        m = StochasticMap(n, inflation="adaptive", gate=None)  # surprising closures on purpose
         r = np.random.default_rng(311)
         for k in range(8):
             m.update(f"x{k}", f"x{k + 1}", random_at(r, n, kind="cloud", t_sigma=0.05,

@@ -101,7 +101,7 @@ def two_maps(work: Path) -> None:
         cb.import_submap(sub)
         mb.import_component(ma.export_component("p0"))
         run(cb, mb, "update", "q2", "p3", noisy_at(rng, n, [1.0, 1.0, 0]))   # join
-        run(cb, mb, "update", "q0", "p5", noisy_at(rng, n, [3.0, 2.0, 0]))   # loop closure
+        run(cb, mb, "update", "q0", "p5", noisy_at(rng, n, [3.0, 3.0, 0]))   # loop closure
         seq_a, seq_b = ca.info().seq, cb.info().seq
     assert d.stop(signal.SIGTERM) == 0
     shutil.copy(d.record, OUT / "two-maps.mcap")

@@ -274,3 +274,37 @@ def test_truncated_copy_of_shipped_recording(mcap: Path, tmp_path: Path,
     assert mcsm_main(["replay", str(cut), "--no-progress"]) == 4  # cut: its own exit code
     out = capsys.readouterr().out
     assert "CUT" in out and "identical" not in out
+
+
+def test_recording_without_the_gate_key_replays_without_a_gate(tmp_path: Path) -> None:
+    """Recorded options without ``gate`` (every recording made before the gate's default
+    became 0.99, and every ``--gate none`` one) mean no gate on replay, bit for bit: a closure
+    50 m off, which the default gate refuses, is applied on replay as it was when recorded."""
+    n = 40
+    rng = np.random.default_rng(12)
+    inputs = [wire.encode_update(f"id{i}", f"p{i}", f"p{i + 1}", at(rng, n, [1, 0, 0]))
+              for i in range(6)]
+    inputs.append(wire.encode_update("far", "p0", "p6", at(rng, n, [56.0, 0, 0])))
+    digests = {}
+    for label, opts in (("off", {"gate": None}), ("default", {})):
+        path = tmp_path / f"{label}.mcap"
+        rec = Recorder(path)
+        st = MapState("default", StochasticMap(n, **opts))  # type: ignore[arg-type]
+        rec.config(st, 100)
+        for k, payload in enumerate(inputs):
+            ack = st.apply("update", decode_input("update", payload, n))
+            rec.input("update", st.name, ack.seq, 1_000 + k, "test", f"id{k}", payload)
+        assert ack.kind == ("loop_closure" if label == "off" else "rejected")
+        rec.checkpoint(st.name, st.seq, st.digest(), "close")
+        rec.close()
+        configs = [i.data for i in RecordingReader(path) if i.topic == TOPIC_CONFIG]
+        assert ("gate" in configs[0]["options"]) == (label == "default")
+        rep = replay(path)
+        assert rep.identical and rep.checkpoints_ok == 1
+        assert rep.states["default"].map.gate == (None if label == "off" else 0.99)
+        digests[label] = rep.states["default"].digest()
+    local = StochasticMap(n, gate=None)
+    for payload in inputs:
+        r = decode_input("update", payload, n)
+        local.update(r.a, r.b, r.samples)
+    assert digests["off"] == local.state_digest() != digests["default"]

@@ -107,3 +107,24 @@ def test_retract_outside_the_window_is_refused(tmp_path: Path, daemons: list[Dae
             c.retract("u0")
         c.retract("u9")
     assert d.stop(signal.SIGINT) == 0
+
+
+def test_a_reinstated_update_stays_in_when_an_earlier_one_is_retracted() -> None:
+    """Reinstating puts an update in as trusted; a later retraction of an earlier input
+    re-applies it, still trusted and still ``reinstated`` (in process, no server)."""
+    from mcsm import wire
+    from mcsm.state import MapState
+
+    ops = _inputs(np.random.default_rng(20261127))
+    st = MapState("default", StochasticMap(N), snapshot_every=4, snapshots_kept=10)
+    for rid, a, b, x, _ in ops:  # "wrong" is sent untrusted: the gate refuses it
+        st.apply("update", wire.UpdateRequest(rid, a, b, x), time_ns=0)
+    assert st.verdict_of("wrong").verdict.status == "rejected"  # type: ignore[union-attr]
+    st.apply("reinstate", wire.RetractRequest("i1", "wrong"), time_ns=0)
+    st.apply("retract", wire.RetractRequest("i2", "true1"), time_ns=0)
+    assert st.verdict_of("wrong").verdict.status == "reinstated"  # type: ignore[union-attr]
+    m = StochasticMap(N)
+    for rid, a, b, x, _ in ops:
+        if rid != "true1":
+            m.update(a, b, x, trusted=rid == "wrong")
+    assert st.digest() == m.state_digest()

@@ -1,9 +1,10 @@
 """Verdicts over the wire: the gate of a real server, in acks, events, info and the recording.
 
-A server started with ``--gate 0.99`` accepts a true loop closure (its ack carries the NIS,
-dof and threshold), rejects a contradicting one (kind ``rejected``, map unchanged), applies a
-trusted one anyway, counts verdicts in ``info``, publishes them in events, and records every
-input with its verdict's inputs so that replay reproduces the verdicts and the digest.
+A server started with its defaults (the gate at 0.99) accepts a true loop closure (its ack
+carries the NIS, dof and threshold), rejects a contradicting one (kind ``rejected``, map
+unchanged), applies a trusted one anyway, counts verdicts in ``info``, publishes them in events,
+and records every input with its verdict's inputs so that replay reproduces the verdicts and
+the digest. With ``--gate none`` nothing is refused.
 """
 
 from __future__ import annotations
@@ -24,10 +25,11 @@ N = 64
 
 def test_gate_verdicts_in_acks_events_info_and_replay(tmp_path: Path,
                                                        daemons: list[Daemon]) -> None:
-    d = start_daemon(tmp_path, "--samples", str(N), "--gate", "0.99")
+    d = start_daemon(tmp_path, "--samples", str(N))  # the default gate: 0.99
     daemons.append(d)
     rng = np.random.default_rng(20261125)
-    local = StochasticMap(N, gate=0.99)
+    local = StochasticMap(N)
+    assert local.gate == 0.99
     events: list[wire.Event] = []
     with MapClient(connect=d.endpoint, timeout_s=10.0) as c:
         sub = c.session.declare_subscriber(
@@ -95,3 +97,26 @@ def test_trusted_and_stamp_round_trip_and_are_checked() -> None:
         with pytest.raises(BadMessage):
             wire.decode_update(msgpack.packb({**d, key: bad}), 3)
 
+
+
+def test_gate_none_applies_every_closure(tmp_path: Path, daemons: list[Daemon]) -> None:
+    d = start_daemon(tmp_path, "--samples", str(N), "--gate", "none")
+    daemons.append(d)
+    rng = np.random.default_rng(20261128)
+    local = StochasticMap(N, gate=None)
+    with MapClient(connect=d.endpoint, timeout_s=10.0) as c:
+        for k in range(4):
+            x = noisy_at(rng, N, [1.0, 0.0, 0.0])
+            c.update(f"p{k}", f"p{k + 1}", x)
+            local.update(f"p{k}", f"p{k + 1}", x)
+        wrong = local.query("p0", "p4")
+        wrong[:, 0] += 50.0 * float(np.std(wrong[:, 0]))  # 50 sigma off
+        ack = c.update("p0", "p4", wrong)
+        local.update("p0", "p4", wrong)
+        assert ack.kind == "loop_closure" and ack.verdict is not None
+        assert ack.verdict.threshold is None and ack.verdict.reason == "no gate"
+        info = c.info()
+        assert "gate" not in info.options and info.digest == local.state_digest()
+    assert d.stop(signal.SIGINT) == 0, d.log_text()
+    rep = replay(d.record)
+    assert rep.identical and rep.states["default"].map.gate is None

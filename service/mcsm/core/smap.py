@@ -42,6 +42,8 @@ SPACES = ("tangent", "quaternion")
 GAINS = ("direct", "endpoints")
 RULES = ("ensrf", "denkf", "enkf")
 default_threads = joint.default_threads
+DEFAULT_GATE = 0.99
+"""The loop-closure gate's default chi-square quantile (measured in docs/outliers.md)."""
 
 
 class StochasticMap(Forest):
@@ -63,8 +65,9 @@ class StochasticMap(Forest):
         closures' NIS per dof)
     gain : ``"direct"`` (default) or ``"endpoints"`` (tangent space only), the estimator of
         every edge's cross-covariance with the predicted observation (:mod:`mcsm.core.joint`)
-    gate : chi-square quantile in (0, 1) of the loop-closure gate, or None (default) for no
-        gate: a loop closure whose NIS exceeds the quantile for its dof is rejected
+    gate : chi-square quantile in (0, 1) of the loop-closure gate (default
+        :data:`DEFAULT_GATE`, 0.99), or None for no gate: a loop closure whose NIS exceeds the
+        quantile for its dof is rejected (docs/outliers.md: why 0.99)
     threads : threads for the joint update's frame pass (default :func:`default_threads`).
         Not part of :meth:`options` or the state: every thread count gives the same bits.
     """
@@ -79,7 +82,7 @@ class StochasticMap(Forest):
         shrink: float | None = 4.0,
         inflation: float | str = 1.0,
         gain: str = "direct",
-        gate: float | None = None,
+        gate: float | None = DEFAULT_GATE,
         threads: int | None = None,
     ) -> None:
         if not isinstance(n_samples, int) or isinstance(n_samples, bool) or n_samples < 2:
@@ -133,7 +136,9 @@ class StochasticMap(Forest):
         return not (self.method == "paper" and self.space == "quaternion")
 
     def options(self) -> dict[str, Any]:
-        """The constructor arguments, as a plain dict (round-trips through from_options)."""
+        """The constructor arguments, as a plain dict (round-trips through from_options).
+        ``gate`` is left out when it is None, so a map without a gate has the options (and
+        digest) it had before the gate existed."""
         o: dict[str, Any] = {"n_samples": self.n_samples, "method": self.method,
                              "space": self.space, "analysis": self.analysis,
                              "shrink": self.shrink, "inflation": self.inflation,
@@ -144,9 +149,12 @@ class StochasticMap(Forest):
 
     @classmethod
     def from_options(cls, options: dict[str, Any]) -> StochasticMap:
-        """Build an empty map from :meth:`options` output."""
+        """Build an empty map from :meth:`options` output (as recorded). A missing ``gate``
+        means no gate: the options of a map recorded before the gate's default changed, or
+        of one without a gate (:meth:`options` leaves it out), rebuild that map."""
         o = dict(options)
         n = o.pop("n_samples")
+        o.setdefault("gate", None)
         return cls(int(n), **o)
 
     def _digest_header(self, h: Any) -> None:
@@ -246,5 +254,5 @@ class StochasticMap(Forest):
         return Verdict(status, nis, dof, threshold, "")
 
 
-__all__ = ["StochasticMap", "UpdateResult", "RemoveResult", "Submap", "Verdict",
-           "check_frame_name", "default_threads"]
+__all__ = ["StochasticMap", "DEFAULT_GATE", "UpdateResult", "RemoveResult", "Submap",
+           "Verdict", "check_frame_name", "default_threads"]
