@@ -19,9 +19,11 @@ update, by the same code in the live server, in replay and in a retraction's re-
 (:mod:`mcsm.history`), so all three reproduce every verdict and digest. Its state is part of
 the in-memory snapshots (retract) and of the recorded ones (``--restore``).
 
-The cycle test runs on the core's public API (``query``, ``compound``, ``invert``,
-``mean_and_cov``) and numpy's ``eigh``: on one machine it decides the same way every time; a
-cycle NIS within rounding of its threshold could be decided differently on another LAPACK build.
+The cycle test decides the map's state, so it computes like the gate: the cycle's samples,
+their NIS against the identity and their spreads all come from the core's kernel (fixed order
+of operations, Jacobi eigenvalues; no BLAS or LAPACK), and the threshold from
+:func:`mcsm.core.gate.chi2_quantile`: a ``--gate-defer`` recording replays to the same bits on
+every CPU.
 """
 
 from __future__ import annotations
@@ -33,11 +35,15 @@ import numpy as np
 import numpy.typing as npt
 
 from mcsm import wire
-from mcsm.core import compound, invert, mean_and_cov
 from mcsm.core.at import check_samples
 from mcsm.core.forest import UpdateResult
-from mcsm.core.gate import chi2_quantile
-from mcsm.core.quat import qlog
+from mcsm.core.gate import (
+    chart_variance,
+    chi2_quantile,
+    cycle_samples,
+    inverse_samples,
+    nis_from_identity,
+)
 from mcsm.core.smap import DEFAULT_GATE, StochasticMap
 from mcsm.errors import McsmError
 
@@ -82,16 +88,11 @@ def cycle_nis(smap: StochasticMap, first: Closure, second: Closure) -> tuple[flo
     """
     q_b = smap.query(first.b, second.b)
     q_a = smap.query(second.a, first.a)
-    cyc = compound(compound(compound(first.samples, q_b), invert(second.samples)), q_a)
-    mean, cov = mean_and_cov(cyc)
-    e = np.concatenate([mean[:3], qlog(mean[3:])])
-    w, v = np.linalg.eigh(0.5 * (cov + cov.T))
-    live = w > 1e-9 * max(float(w.max()), 1e-300)
-    u = v[:, live].T @ e
-    tr_map = float(np.trace(mean_and_cov(q_a)[1]) + np.trace(mean_and_cov(q_b)[1]))
-    tr_obs = float(np.trace(mean_and_cov(first.samples)[1])
-                   + np.trace(mean_and_cov(second.samples)[1]))
-    return float(np.sum(u * u / w[live])), int(live.sum()), tr_map / max(tr_obs, 1e-300)
+    cyc = cycle_samples(first.samples, q_b, inverse_samples(second.samples), q_a)
+    nis, dof = nis_from_identity(cyc)
+    tr_map = chart_variance(q_a) + chart_variance(q_b)
+    tr_obs = chart_variance(first.samples) + chart_variance(second.samples)
+    return nis, dof, tr_map / max(tr_obs, 1e-300)
 
 
 @dataclass(frozen=True)

@@ -4,7 +4,8 @@ Usage: ``python -m tests.core.portable_history [--threads K] [--replay FILE.mcap
 Prints one JSON object: the state digest of the same 3-D history (a chain with loop
 closures, point landmarks, a join of two components, a submap import, removals including a
 root's) under each option set that ``mcsm serve`` offers for the joint update, and, for each
-``--replay`` file, whether it replays identical and its final digests. The parent test runs
+``--replay`` file, whether it replays identical and its final digests; and a revisit under
+the service's ``--gate-defer`` policy (its digest and every verdict). The parent test runs
 this under other BLAS kernels, other numpy CPU features, other thread counts and other
 builds of the compiled kernel, and requires one answer for all.
 """
@@ -59,6 +60,39 @@ def history(threads: int, **opts: object) -> str:
     return m.state_digest()
 
 
+def deferral_history(threads: int) -> str:
+    """A revisit under ``--gate-defer`` (the service's policy over the core): its closures are
+    held, paired through the map's joint samples (the cycle test) and decided; the digest and
+    every verdict's status and NIS."""
+    from mcsm import wire
+    from mcsm.deferral import DeferOptions, Deferral
+
+    rng = np.random.default_rng(20261124)
+    m = StochasticMap(N, threads=threads)
+    dfr = Deferral(DeferOptions(expiry=6, revisit_gap=3), m.gate)
+    statuses = []
+
+    def send(seq: int, a: str, b: str, x: np.ndarray) -> None:
+        out = dfr.update(m, seq, wire.UpdateRequest(f"r{seq}", a, b, x))
+        statuses.append(f"{out.verdict.status}:{out.verdict.nis!r}")
+        statuses.extend(f"{rid}={v.status}" for rid, v in sorted(out.decided.items()))
+
+    seq = 0
+    for k in range(24):
+        seq += 1
+        send(seq, f"p{k}", f"p{k + 1}", random_at(rng, N, kind="cloud", t_sigma=0.1,
+                                                   r_sigma=0.02))
+        if k in (12, 13, 14, 20, 21):  # revisits: true closures, then a wrong one
+            a = k - 10
+            x = m.query(f"p{a}", f"p{k + 1}")[rng.permutation(N)]
+            if k == 21:
+                x = x.copy()
+                x[:, 0] += 3.0
+            seq += 1
+            send(seq, f"p{a}", f"p{k + 1}", x)
+    return m.state_digest() + ";" + ",".join(statuses)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--threads", type=int, default=1)
@@ -66,6 +100,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     out: dict[str, object] = {name: history(args.threads, **opts)
                               for name, opts in OPTION_SETS.items()}
+    out["gate-defer"] = deferral_history(args.threads)
     if args.replay:
         from mcsm.recording import replay
 

@@ -12,6 +12,13 @@ from __future__ import annotations
 import math
 from functools import lru_cache
 
+import numpy as np
+import numpy.typing as npt
+
+from mcsm.core import kernel
+
+Array = npt.NDArray[np.float64]
+
 _SQRT_PI = 1.7724538509055159
 
 
@@ -84,4 +91,55 @@ def chi2_quantile(p: float, dof: int) -> float:
     return hi
 
 
-__all__ = ["chi2_cdf", "chi2_quantile"]
+def _rows(x: Array) -> Array:
+    """``(N, 7)`` samples (already checked: a query's answer, a decoded request) as kernel
+    rows ``(7, N)``."""
+    return np.ascontiguousarray(np.asarray(x, dtype=np.float64).T)
+
+
+def _identity(n: int) -> Array:
+    e = np.zeros((7, n))
+    e[3] = 1.0
+    return e
+
+
+def cycle_samples(*ats: Array) -> Array:
+    """``ats[0] ⊕ ats[1] ⊕ ...`` sample by sample (``(N, 7)`` each; the kernel's fixed order)."""
+    acc = _rows(ats[0])
+    for x in ats[1:]:
+        acc = kernel.compound(acc, _rows(x))
+    return np.ascontiguousarray(acc.T)
+
+
+def inverse_samples(x: Array) -> Array:
+    """Each sample's inverse transform (kernel)."""
+    return np.ascontiguousarray(kernel.invert(_rows(x)).T)
+
+
+def nis_from_identity(x: Array) -> tuple[float, int]:
+    """``(NIS, dof)`` of the samples' mean against the identity, with the samples' own
+    covariance over its live dimensions, in the gate's tangent chart: the gate's own
+    computation (kernel, fixed order, Jacobi eigenvalues), with an exact prediction."""
+    rows = _rows(x)
+    ident = _identity(rows.shape[1])
+    rc, _, _, info = kernel.analysis(ident, ident, rows, False, 0, 0)
+    if rc != kernel.OK:
+        raise ValueError("non-finite analysis of a cycle")
+    return float(info[1]), int(info[2])
+
+
+def chart_variance(x: Array) -> float:
+    """Total variance (trace of the covariance) of the samples in the gate's tangent chart
+    around their mean (kernel, fixed order)."""
+    rows = _rows(x)
+    ident = _identity(rows.shape[1])
+    _, yc, _, info = kernel.analysis(ident, rows, ident, False, 0, 0)
+    p = yc.shape[0]
+    total = 0.0
+    for k in range(p):  # p <= 7 values, in a fixed order
+        total += float(info[3 + k])
+    return total
+
+
+__all__ = ["chi2_cdf", "chi2_quantile", "cycle_samples", "inverse_samples",
+           "nis_from_identity", "chart_variance"]
