@@ -50,6 +50,7 @@ EXIT_RECORDING_FAILED = 3  # serve: the recording could not be written; serving 
 EXIT_CUT = 4  # the file ends before its clean close (SIGKILL, full disk): the prefix was used
 EXIT_DAMAGED = 5  # a CRC does not match or a record does not decode: read up to the damage
 EXIT_OTHER_ARITHMETIC = 6  # replay: recorded by another arithmetic version; not compared
+EXIT_DEPOSED = 7  # serve: another primary took every map of this server (it was cut off)
 
 EXIT_CODES_HELP = """exit codes:
   0  success (replay: every checkpoint matches and the file is complete)
@@ -60,6 +61,8 @@ EXIT_CODES_HELP = """exit codes:
   4  the recording is cut (no clean close): inspect/replay used every complete record
   5  the recording is damaged (CRC mismatch or undecodable record): read up to the damage
   6  replay: recorded by another arithmetic version of the core; digests not comparable
+  7  serve: another primary serves every map this server served (it was cut off from the
+     network while a standby took over); restart it with --standby-of MAP
 (replay reports the first that applies in the order 1, 5, 4, 6)"""
 
 
@@ -376,6 +379,9 @@ def serve(args: argparse.Namespace) -> int:
             if server.failed.is_set():
                 log.critical("stopping after a recording failure")
                 return 3
+            if server.serving_nothing:
+                log.critical("stopping: another primary serves every map of this server")
+                return EXIT_DEPOSED
         return 0
     finally:
         server.close()

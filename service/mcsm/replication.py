@@ -202,9 +202,13 @@ class PrimaryLink:
     queryable and the standbys it sees (their liveliness tokens and confirmed seqs)."""
 
     def __init__(self, server: Server, st: MapState, keys: wire.Keys,
-                 recent: list[Entry] | None = None, sync: int = 0) -> None:
+                 recent: list[Entry] | None = None, sync: int = 0, epoch: int = 0) -> None:
         o = server.opts
         self.server, self.st, self.keys = server, st, keys
+        self.epoch = int(epoch)
+        """How many takeovers made this primary (0: started with --map). Two primaries that
+        meet (one was cut off while a standby took over) keep the higher epoch's (then the
+        smaller id's) and the other steps down."""
         self.sync = max(0, int(o.sync_standbys), int(sync))
         self.timeout_s = float(o.sync_timeout_s)
         self.log = ReplLog(st.seq - len(recent or []), o.repl_log)
@@ -215,6 +219,7 @@ class PrimaryLink:
         self._standbys: dict[str, int] = {}  # zid -> last seq it confirmed (-1: none yet)
         self._config = {"options": st.map.options(), "n_samples": st.n_samples,
                         "checkpoint_every": o.checkpoint_every, "sync_standbys": self.sync,
+                        "epoch": self.epoch,
                         "disk_snapshot_every": o.disk_snapshot_every,
                         "snapshot_every": st.history.snapshot_every,
                         "snapshots_kept": st.history.snapshots_kept,
@@ -224,6 +229,7 @@ class PrimaryLink:
         self._entities: list[Any] = [
             s.liveliness().declare_subscriber(keys.standby_any, self._on_token, history=True),
             s.declare_queryable(keys.log, self._on_log, complete=True),
+            s.liveliness().declare_subscriber(keys.alive_any, self._on_primary),
         ]
 
     def close(self) -> None:
@@ -241,6 +247,43 @@ class PrimaryLink:
             else:
                 self._standbys.pop(zid, None)
                 log.info("map %r: standby %s left", self.st.name, zid)
+
+    def _on_primary(self, sample: zenoh.Sample) -> None:
+        """Another primary of this map appeared (this server was cut off and a standby took
+        over, or two standbys promoted across a partition): settle it off Zenoh's thread."""
+        zid = _zid_of(sample.key_expr)
+        if sample.kind == zenoh.SampleKind.PUT and zid != self.server.server_id:
+            threading.Thread(target=self._contest, args=(zid,), daemon=True,
+                             name=f"mcsm-contest-{self.st.name}").start()
+
+    def _contest(self, other: str) -> None:
+        """Step down if ``other`` has the higher epoch (or the same and a smaller id)."""
+        epoch = None
+        for _ in range(10):  # its info, a few tries while it is coming up
+            for reply in self.server.session.get(self.keys.info, timeout=2.0,
+                                                 target=zenoh.QueryTarget.ALL,
+                                                 consolidation=zenoh.ConsolidationMode.NONE):
+                rid = str(reply.replier_id.zid) if reply.replier_id is not None else ""
+                if rid == other and reply.ok is not None:
+                    try:
+                        epoch = wire.decode_info_reply(reply.ok.payload.to_bytes()).epoch
+                    except McsmError:
+                        continue
+            if epoch is not None or self.server.closed:
+                break
+            time.sleep(0.2)
+        if epoch is None:
+            log.warning("map %r: another primary %s appeared but did not answer info",
+                        self.st.name, other)
+            return
+        if epoch > self.epoch or (epoch == self.epoch and other < self.server.server_id):
+            why = (f"server {other} serves it too with epoch {epoch} (this server: epoch "
+                   f"{self.epoch}): this server was cut off while a standby took over")
+            self.server.run_in_worker(lambda: self.server.step_down(self.st.name, why),
+                                      timeout_s=60.0)
+        else:
+            log.warning("map %r: server %s serves it too (epoch %d); it steps down (this "
+                        "server: epoch %d)", self.st.name, other, epoch, self.epoch)
 
     def standbys(self) -> dict[str, int]:
         """Live standbys and the last seq each confirmed (0 if none yet)."""
@@ -290,7 +333,8 @@ class PrimaryLink:
             n = len(self._standbys)
         if n == 0:
             return self.sync == 0
-        payload = _pack({"t": "push", "primary": self.server.server_id, "entry": e.to_obj()})
+        payload = _pack({"t": "push", "primary": self.server.server_id, "epoch": self.epoch,
+                         "entry": e.to_obj()})
         kw: dict[str, Any] = {"payload": payload, "target": zenoh.QueryTarget.ALL,
                               "consolidation": zenoh.ConsolidationMode.NONE,
                               "congestion_control": zenoh.CongestionControl.BLOCK,
@@ -380,6 +424,7 @@ class Follower:
         self.st: MapState | None = None
         self.checkpoint_every = 100
         self.sync = 0  # the primary's --sync-standbys: kept when this standby takes over
+        self.epoch = 0  # the primary's epoch: this standby takes over with the next one
         self.disk_snapshot_every = 0
         self.primary: str | None = None
         self.stopped: str | None = None  # why this standby stopped following (never promoted)
@@ -443,7 +488,11 @@ class Follower:
             if kind == "push":
                 e = Entry.from_obj(d.get("entry"))
                 sender = str(d.get("primary", ""))
-                task: Callable[[], None] = lambda: self._reply_push(query, e, sender)  # noqa: E731
+                epoch = d.get("epoch", 0)
+                if type(epoch) is not int or epoch < 0:
+                    raise BadMessage("epoch", "an integer >= 0", repr(epoch)[:40])
+                task: Callable[[], None] = lambda: self._reply_push(  # noqa: E731
+                    query, e, sender, epoch)
             elif kind == "status":
                 task = lambda: self._reply(query, {"t": "status"})  # noqa: E731
             else:
@@ -466,19 +515,21 @@ class Follower:
             log.debug("standby reply: %s", exc)
 
     # ---------------------------------------------------------------- the worker
-    def _reply_push(self, query: zenoh.Query, e: Entry, sender: str) -> None:
+    def _reply_push(self, query: zenoh.Query, e: Entry, sender: str, epoch: int) -> None:
         if self.promoted or self.stopped is not None:
             pass
         elif sender != self.primary:  # not (yet) the server whose token this standby sees
             log.warning("map %r: ignoring a push from %r (following %s)", self.name, sender,
                         self.primary)
-        elif self.st is None or e.seq > self.st.seq + 1:
-            self._need.set()
-        elif e.seq == self.st.seq + 1:
-            self._apply(e)
-        elif not self._same(e):
-            self._stop_following(f"seq {e.seq} here is another input than the primary's "
-                                 f"({e.request_id!r}): the histories forked")
+        else:
+            self.epoch = epoch  # a takeover by this standby is the next epoch
+            if self.st is None or e.seq > self.st.seq + 1:
+                self._need.set()
+            elif e.seq == self.st.seq + 1:
+                self._apply(e)
+            elif not self._same(e):
+                self._stop_following(f"seq {e.seq} here is another input than the primary's "
+                                     f"({e.request_id!r}): the histories forked")
         self._reply(query, {"t": "have"})
 
     def _same(self, e: Entry) -> bool:
@@ -545,6 +596,7 @@ class Follower:
         if self.stopped is not None or self.promoted:
             return
         self.sync = max(0, int(config.get("sync_standbys", 0)))
+        self.epoch = max(0, int(config.get("epoch", 0)))
         st = self._ensure_state(config)
         for e in entries:
             if self.stopped is not None:
@@ -560,6 +612,7 @@ class Follower:
         if self.stopped is not None or self.promoted:
             return
         self.sync = max(0, int(config.get("sync_standbys", 0)))
+        self.epoch = max(0, int(config.get("epoch", 0)))
         d = wire.unpack(blob, max_bytes=len(blob) + 1, max_map_len=1 << 20)
         seq = int(d["seq"])
         if self.st is not None and self.st.seq > 0:
@@ -674,11 +727,28 @@ class Follower:
             timeout_s=60.0)
         return out
 
+    def connected(self) -> bool:
+        """Whether this server still reaches any other Zenoh node (a router or a peer). A
+        server cut off from the network sees every other server's token go away: it must not
+        take that for the primary's death (a router restart would split the map in two)."""
+        info = self.server.session.info
+        return bool(list(info.routers_zid()) or list(info.peers_zid()))
+
     def _elect(self, lost: str) -> None:
+        """Until a primary serves the map again: find the standby that takes over (the
+        highest seq, then the smallest id) and promote this one if it is that standby. Runs
+        on its own thread; ends when this server stops, takes over or follows a primary."""
         self._elections += 1
-        for _ in range(30):  # bounded rounds of about 2 s
-            if self._stop.is_set() or self.promoted or self.primary is not None:
-                return
+        isolated_logged = False
+        self._stop.wait(0.2)  # let a lost link show in the session's routers and peers
+        while not (self._stop.is_set() or self.promoted or self.primary is not None):
+            if not self.connected():
+                if not isolated_logged:
+                    log.warning("map %r: primary %s lost, but this server reaches no router "
+                                "or peer: not taking over while cut off", self.name, lost)
+                    isolated_logged = True
+                self._stop.wait(0.5)
+                continue
             statuses = {z: s for z, s in self._statuses().items() if s >= 0}
             if self.primary is not None:
                 return
@@ -694,7 +764,6 @@ class Follower:
                     return
             if self._primary_seen.wait(3.0):
                 return
-        log.error("map %r: no standby took over after 30 rounds", self.name)
 
     def became_primary(self) -> MapState:
         """Called by the server's worker once it declared the map's keys."""

@@ -152,6 +152,8 @@ class Server:
         self._reject_lock = threading.Lock()
         self.links: dict[str, PrimaryLink] = {}  # maps this server is primary of
         self.followers: dict[str, Follower] = {}  # maps this server is a standby of
+        self._map_entities: dict[str, list[Any]] = {}  # a served map's queryable and token
+        self.deposed: dict[str, str] = {}  # maps another primary took from this server: why
 
     # ---------------------------------------------------------------- lifecycle
     def start(self) -> None:
@@ -241,17 +243,19 @@ class Server:
                                     f"server with --standby-of {name})")
 
     def _declare(self, name: str, st: MapState, recent: list[Entry] | None = None,
-                 sync: int = 0) -> None:
+                 sync: int = 0, epoch: int = 0) -> None:
         k = wire.map_keys(name, self.opts.prefix)
         self.keys[name] = k
         s = self.session
-        self.links[name] = PrimaryLink(self, st, k, recent, sync)
+        self.links[name] = PrimaryLink(self, st, k, recent, sync, epoch)
         # One queryable per map: one callback thread, one arrival order for all its keys.
-        self._entities.append(s.declare_queryable(
-            k.all, lambda query: self._on_query(k, st, query), complete=False))
+        ents = [s.declare_queryable(k.all, lambda query: self._on_query(k, st, query),
+                                    complete=False),
+                s.liveliness().declare_token(k.alive(self.server_id))]
+        self._map_entities[name] = ents
+        self._entities.extend(ents)
         self._publishers[name] = s.declare_publisher(k.events, express=True,
                                                      encoding=wire.ENCODING)
-        self._entities.append(s.liveliness().declare_token(k.alive(self.server_id)))
         log.info("serving map %r on %s (N=%d, seq=%d)", name, k.all, st.n_samples, st.seq)
 
     def close(self) -> None:
@@ -377,7 +381,7 @@ class Server:
     def promote(self, f: Follower) -> bool:
         """Take over ``f``'s map as its primary (on the worker); False if another server
         serves it already."""
-        if f.st is None or f.stopped is not None or self._closed:
+        if f.st is None or f.stopped is not None or self._closed or not f.connected():
             return False
         try:
             self.check_not_served([f.name], timeout_s=0.5)
@@ -388,7 +392,7 @@ class Server:
         st = f.became_primary()
         del self.followers[f.name]
         self.states[st.name] = st
-        self._declare(st.name, st, list(f.recent), f.sync)
+        self._declare(st.name, st, list(f.recent), f.sync, f.epoch + 1)
         digest = st.digest()
         if self.recorder is not None:
             try:
@@ -408,6 +412,42 @@ class Server:
             log.warning("could not publish the takeover event: %s", exc)
         return True
 
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def step_down(self, name: str, why: str) -> None:
+        """Stop serving ``name`` (on the worker): another primary serves it now. Its state is
+        checkpointed and dropped; requests already queued for it get an error."""
+        st = self.states.get(name)
+        if st is None or name in self.deposed:
+            return
+        log.critical("map %r: stepping down: %s; restart this server with --standby-of %s",
+                     name, why, name)
+        ents = self._map_entities.pop(name, [])
+        undeclare_all(list(ents))
+        self._entities[:] = [e for e in self._entities if all(e is not x for x in ents)]
+        link = self.links.pop(name, None)
+        if link is not None:
+            link.close()
+        pub = self._publishers.pop(name, None)
+        if pub is not None:
+            undeclare_all([pub])
+        if self.recorder is not None and not self.failed.is_set():
+            try:
+                self.recorder.checkpoint(name, st.seq, st.digest(), "deposed")
+            except (OSError, ValueError) as exc:
+                log.critical("recording failed: %s", exc)
+                self.failed.set()
+        del self.states[name]
+        self.deposed[name] = why
+
+    @property
+    def serving_nothing(self) -> bool:
+        """True once every map this server served was taken by another primary and it
+        follows none: ``mcsm serve`` then exits (code 7)."""
+        return bool(self.deposed) and not self.states and not self.followers
+
     def _reply(self, item: _Item, payload: bytes) -> None:
         try:
             item.query.reply(item.key, payload, express=True, encoding=wire.ENCODING)
@@ -423,6 +463,10 @@ class Server:
 
     def _handle(self, item: _Item) -> None:
         st = item.state
+        if st.name in self.deposed:
+            self._reply_err(item, McsmError(f"map {st.name!r} is served by another server "
+                                            "now; retry (the client finds it)"))
+            return
         if self.failed.is_set():
             self._reply_err(item, McsmError("server stopped: recording failed"))
             return
@@ -512,7 +556,8 @@ class Server:
             recording=str(self.recorder.path) if self.recorder is not None else "",
             queue_length=self._queue.qsize(),
             standbys=self.links[st.name].standbys() if st.name in self.links else {},
-            sync_standbys=self.links[st.name].sync if st.name in self.links else 0)
+            sync_standbys=self.links[st.name].sync if st.name in self.links else 0,
+            epoch=self.links[st.name].epoch if st.name in self.links else 0)
 
 
 def new_map(map_options: dict[str, Any]) -> StochasticMap:

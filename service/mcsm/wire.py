@@ -586,6 +586,8 @@ class MapInfo:
     """Each live standby's server id and the last seq it confirmed (its lag: ``seq`` minus
     that); ``sync_standbys`` of them must confirm an update before it is acknowledged."""
     sync_standbys: int = field(default=0, metadata=wire_field(check_count, required=False))
+    epoch: int = field(default=0, metadata=wire_field(check_count, required=False))
+    """Takeovers behind this primary (0: started with ``--map``; docs/fleet.md)."""
 
     @property
     def n_frames(self) -> int:

@@ -20,7 +20,7 @@ from mcsm.recording import TOPIC_CHECKPOINT, TOPIC_OPS, RecordingReader, replay
 from mcsm_client.cli import main as client_main
 from mcsm_client.client import MapClient
 
-from tests.service.daemon_util import Daemon, noisy_at, start_daemon
+from tests.service.daemon_util import Daemon, free_port, noisy_at, start_daemon
 from tests.service.test_fleet import _router
 
 N = 32
@@ -174,3 +174,100 @@ def test_late_standby_catches_up(tmp_path: Path, daemons: list[Daemon], repl_log
     rep = replay(s.record)
     assert rep.divergence is None and rep.final_digests()["m"] == info.digest
     assert rep.snapshots_loaded == (1 if repl_log == "5" else 0)
+
+
+def _router_at(tmp: Path, ep: str, *extra: str) -> subprocess.Popen[str]:
+    proc = subprocess.Popen([sys.executable, "-m", "mcsm.cli", "router", "--listen", ep,
+                             *extra], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                            text=True, cwd=tmp, env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    assert proc.stdout is not None
+    deadline = time.monotonic() + 30.0
+    line = ""
+    while time.monotonic() < deadline and "routing on" not in line:
+        line = proc.stdout.readline()
+        if not line and proc.poll() is not None:
+            break
+    assert "routing on" in line, f"router did not start: {line!r}"
+    return proc
+
+
+def _primaries(ep: str) -> list[str]:
+    with MapClient(map="m", connect=ep, timeout_s=5.0) as c:
+        return c.servers(timeout_s=1.0)
+
+
+def test_a_router_restart_does_not_split_the_map(tmp_path: Path,
+                                                 daemons: list[Daemon]) -> None:
+    """Both servers lose the router at once: the standby sees the primary's token go, but it
+    reaches nobody, so it does not take over; once the router is back it follows again."""
+    router, ep = _router(tmp_path)
+    try:
+        p = start_daemon(tmp_path, "--samples", str(N), "--map", "m", "--connect", ep,
+                         name="p", endpoint="-")
+        daemons.append(p)
+        s = _standby(tmp_path, ep, "s")
+        daemons.append(s)
+        rng = np.random.default_rng(3)
+        with MapClient(map="m", connect=ep, timeout_s=30.0) as c:
+            _poll("the standby joins", lambda: len(c.info().standbys) == 1)
+            for k in range(5):
+                c.update(f"r/{k}", f"r/{k + 1}", noisy_at(rng, N, [1.0, 0.0, 0.0]))
+            primary = c.info().server_id
+        router.kill()
+        router.wait(timeout=10)
+        _poll("the standby notices", lambda: "reaches no router" in s.log_text(), 20.0)
+        router = _router_at(tmp_path, ep)
+        with MapClient(map="m", connect=ep, timeout_s=30.0) as c:
+            _poll("the standby follows again", lambda: len(c.info().standbys) == 1, 60.0)
+            assert _primaries(ep) == [primary]
+            for k in range(5, 10):
+                assert c.update(f"r/{k}", f"r/{k + 1}",
+                                noisy_at(rng, N, [1.0, 0.0, 0.0])).server == primary
+            info = c.info()
+        assert "took over" not in s.log_text()
+        assert s.stop() == 0 and p.stop() == 0
+    finally:
+        router.kill()
+        router.wait(timeout=10)
+    for d in (p, s):
+        rep = replay(d.record)
+        assert rep.divergence is None and rep.final_digests()["m"] == info.digest
+
+
+def test_two_primaries_that_meet_leave_one(tmp_path: Path, daemons: list[Daemon]) -> None:
+    """Two servers of map ``m`` on two separate networks (as after a standby took over from a
+    primary that was cut off), then a router joins the networks: the one with the lower epoch,
+    here the larger id, steps down and exits 7; the other serves on."""
+    ra, ea = _router(tmp_path)
+    rb, eb = _router(tmp_path)
+    bridge = None
+    try:
+        a = start_daemon(tmp_path, "--samples", str(N), "--map", "m", "--connect", ea,
+                         name="a", endpoint="-")
+        daemons.append(a)
+        b = start_daemon(tmp_path, "--samples", str(N), "--map", "m", "--connect", eb,
+                         name="b", endpoint="-")
+        daemons.append(b)
+        ids = {}
+        for name, ep in (("a", ea), ("b", eb)):
+            with MapClient(map="m", connect=ep, timeout_s=30.0) as c:
+                ids[name] = c.info().server_id
+        conf = tmp_path / "bridge.json5"
+        conf.write_text(json.dumps({
+            "mode": "router", "connect": {"endpoints": [ea, eb]},
+            "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}}}))
+        bridge = _router_at(tmp_path, f"tcp/127.0.0.1:{free_port()}", "--zenoh-config",
+                            str(conf))
+        loser = "a" if ids["a"] > ids["b"] else "b"
+        winner = "b" if loser == "a" else "a"
+        procs = {"a": a, "b": b}
+        assert procs[loser].proc.wait(timeout=60) == 7
+        assert "stepping down" in procs[loser].log_text()
+        assert procs[winner].proc.poll() is None
+        for ep in (ea, eb):
+            _poll("one primary", lambda e=ep: _primaries(e) == [ids[winner]], 30.0)
+    finally:
+        for r in (ra, rb, bridge):
+            if r is not None:
+                r.kill()
+                r.wait(timeout=10)
