@@ -130,13 +130,14 @@ def _standby_seq(f: Fleet) -> int:
     return int(wire.unpack(replies[0].ok.payload.to_bytes())["seq"])
 
 
-def test_secured_fleet_replicates_and_a_standby_takes_over(secrets_dir: Path,
-                                                           tmp_path: Path) -> None:
-    """Through the secured router (usrpwd): every acknowledged update of a robot is on the
+@pytest.mark.parametrize("variant", ["usrpwd", "mtls"])
+def test_secured_fleet_replicates_and_a_standby_takes_over(secrets_dir: Path, tmp_path: Path,
+                                                           variant: str) -> None:
+    """Through the secured router (both variants): every acknowledged update of a robot is on the
     primary and its synchronous standby; the primary is SIGKILLed, the standby takes over, the
     old primary's identity comes back as the new standby, and the robot goes on with the same
     credentials: nothing lost or doubled, both recordings replay identical."""
-    f = start_fleet(secrets_dir, "usrpwd", tmp_path)
+    f = start_fleet(secrets_dir, variant, tmp_path)
     rng = np.random.default_rng(1801)
     try:
         p = f.serve(tmp_path, "server1", "p", "--map", "m", "--sync-standbys", "1")
@@ -163,7 +164,7 @@ def test_secured_fleet_replicates_and_a_standby_takes_over(secrets_dir: Path,
         assert all(a.server == before.server_id for a in acks[:10])
         assert all(a.server == after.server_id != before.server_id for a in acks[10:])
         assert after.seq == 20 and list(after.standbys.values()) == [20]
-        assert s.stop() == 0 and p2.stop() == 0
+        assert p2.stop() == 0 and s.stop() == 0  # the standby first: it would take over
     finally:
         f.stop()
     ids = {a.seq: f"r{a.seq - 1}" for a in acks}
@@ -197,16 +198,28 @@ def test_clients_cannot_push_into_a_standby_or_read_the_log(fleet: Fleet, ident:
                     ("mcsm/m/@log", wire.pack({"v": wire.VERSION, "from": 0})),
                     ("mcsm/m/@log", wire.pack({"v": wire.VERSION, "snapshot": [0, 0]}))]
         s = fleet.session(ident)
+        seen: list[str] = []
         try:
             for key, payload in requests:
                 assert list(s.get(key, payload=payload, timeout=DENIED_S)) == [], (ident, key)
+            # nor can it watch the standbys' tokens
+            sub = s.liveliness().declare_subscriber("mcsm/m/@standby/*",
+                                                    lambda smp: seen.append(str(smp.key_expr)),
+                                                    history=True)
+            assert list(s.liveliness().get("mcsm/m/@standby/*", timeout=DENIED_S)) == []
+            sub.undeclare()
         finally:
             s.close()
+        assert seen == []
         srv = fleet.session("server2")
         try:
             for key, payload in requests[2:4]:
                 replies = list(srv.get(key, payload=payload, timeout=5.0))
                 assert len(replies) == 1 and replies[0].ok is not None, key
+            assert len(list(srv.liveliness().get("mcsm/m/@standby/*", timeout=5.0))) == 1
+            # a server identity is no client: its requests on the map's keys are denied
+            assert list(srv.get("mcsm/m/info", payload=wire.pack({"v": wire.VERSION}),
+                                timeout=DENIED_S)) == []
         finally:
             srv.close()
         assert _standby_seq(fleet) == info.seq
