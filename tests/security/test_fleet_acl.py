@@ -61,6 +61,14 @@ class Fleet:
         self.servers[name] = d
         return d
 
+    def restart_router(self) -> None:
+        """Stop the router (SIGINT) and start it again on the same endpoint."""
+        self.router.stop()
+        assert self.router.log_path is not None
+        self.router = McsmProcess(self.router.cmd[3:], ready="routing on",
+                                  log_path=self.router.log_path.with_suffix(".2.log"),
+                                  cwd=self.router.cwd, ready_timeout_s=30.0).start()
+
     def stop(self) -> None:
         for d in self.servers.values():
             d.stop(signal.SIGKILL)
@@ -174,6 +182,35 @@ def test_secured_fleet_replicates_and_a_standby_takes_over(secrets_dir: Path, tm
     for d in (s, p2):
         rep = replay(d.record)
         assert rep.divergence is None and rep.final_digests()["m"] == after.digest
+
+
+def test_router_restart_with_the_standbys_stopped(secrets_dir: Path, tmp_path: Path) -> None:
+    """The procedure docs/fleet.md gives for changing the router's rules (a restart): stop the
+    standbys, restart the router, start them again. The primary keeps the map (one server
+    claims it), the robot goes on with the same client, the new standby catches up."""
+    f = start_fleet(secrets_dir, "usrpwd", tmp_path)
+    rng = np.random.default_rng(1804)
+    try:
+        p = f.serve(tmp_path, "server1", "p", "--map", "m", "--sync-standbys", "1")
+        s = f.serve(tmp_path, "server2", "s", "--standby-of", "m")
+        with f.client("robot1", namespace="robot1", timeout_s=30.0) as robot:
+            _poll("the standby joins", lambda: len(robot.info().standbys) == 1)
+            acks = [robot.update(f"robot1/p{i}", f"robot1/p{i + 1}", noisy_at(rng, N, [1, 0, 0]))
+                    for i in range(5)]
+            assert s.stop() == 0
+            f.restart_router()
+            s2 = f.serve(tmp_path, "server2", "s2", "--standby-of", "m")
+            acks += [robot.update(f"robot1/p{i}", f"robot1/p{i + 1}",
+                                  noisy_at(rng, N, [1, 0, 0])) for i in range(5, 10)]
+            info = robot.info()
+            assert robot.servers() == [info.server_id]
+        assert [a.seq for a in acks] == list(range(1, 11))
+        assert {a.server for a in acks} == {info.server_id}
+        assert list(info.standbys.values()) == [10]
+        assert s2.stop() == 0 and p.stop() == 0
+    finally:
+        f.stop()
+    assert replay(s2.record).final_digests()["m"] == info.digest
 
 
 @pytest.mark.parametrize("ident", CLIENTS)
