@@ -13,10 +13,13 @@ For each variant it copies ``deploy/<variant>/*.json5`` into ``OUT/<variant>/`` 
   ``localhost``, ``127.0.0.1`` and every ``--server-host``) and one client certificate per
   identity (CN = the identity: ``robot1``, ``viewer``, ...) in ``certs/`` (keys mode 0600).
 
-The identities are the client configs' file names (every ``*.json5`` but ``server.json5``).
-Copy ``OUT/<variant>/server.json5`` with ``users.txt`` or ``certs/{ca.pem,server.*}`` to the
-server, and each ``<identity>.json5`` with its own password or ``certs/{ca.pem,<identity>.*}``
-to that machine only. Prints the directories it wrote. Exit 0 on success, 2 on a usage error
+The identities are the connecting configs' file names (every ``*.json5`` but ``server.json5``
+and ``router.json5``): the clients and a fleet's map servers (``server1``, ``server2``). One
+``users.txt`` (one CA) serves both shapes of deployment: copy ``OUT/<variant>/server.json5``
+(one server) or ``router.json5`` (a fleet's router) with ``users.txt`` or
+``certs/{ca.pem,server.*}`` (the listening certificate of either) to that machine, and each
+``<identity>.json5`` with its own password or ``certs/{ca.pem,<identity>.*}`` to that machine
+only. Prints the directories it wrote. Exit 0 on success, 2 on a usage error
 (``OUT/<variant>`` exists, no openssl), 1 if openssl fails.
 """
 
@@ -35,8 +38,14 @@ VARIANTS = ("usrpwd", "mtls")
 DAYS = 365
 
 
+LISTENERS = ("server.json5", "router.json5")
+"""The configs that accept connections (a single server, a fleet's router); every other
+``*.json5`` is an identity that connects: a client (robot, viewer, admin) or a fleet's map
+server (``server1``, ``server2``)."""
+
+
 def identities(variant_dir: Path) -> list[str]:
-    return sorted(p.stem for p in variant_dir.glob("*.json5") if p.name != "server.json5")
+    return sorted(p.stem for p in variant_dir.glob("*.json5") if p.name not in LISTENERS)
 
 
 def _copy(variant: str, out: Path) -> Path:

@@ -393,3 +393,37 @@ def test_only_the_admin_retracts_everyone_reads_verdicts(dep: Deployment) -> Non
         assert admin.retract("r1-u2").verdict.status == "retracted"  # type: ignore[union-attr]
         assert viewer.verdict("r1-u2").status == "retracted"  # type: ignore[union-attr]
         assert admin.reinstate("r1-u2").verdict.status == "reinstated"  # type: ignore[union-attr]
+
+
+def test_fleet_server_identities_have_no_rights_on_a_single_server(dep: Deployment) -> None:
+    """``make_secrets.py`` gives the fleet's server identities (server1, server2) a password or
+    certificate from the same users.txt / CA; ``server.json5`` names them in no subject, so on
+    a single server they can open a session and do nothing: no request answered, a queryable
+    and a token they declare on the map's keys reach nobody."""
+    rng = np.random.default_rng(1211)
+    s = dep.session("server1")
+    got: list[str] = []
+    entities = [s.declare_queryable("mcsm/rogue/**", lambda q: got.append(str(q.key_expr)),
+                                    complete=True),
+                s.liveliness().declare_token(f"mcsm/rogue/alive/{s.zid()}")]
+    try:
+        for key in ("mcsm/view/info", "mcsm/view/query", "mcsm/view/update"):
+            assert list(s.get(key, payload=wire.pack({"v": wire.VERSION}),
+                              timeout=DENIED_S)) == [], key
+        admin = dep.session("admin")  # the same request with a client identity is answered
+        try:
+            replies = list(admin.get("mcsm/view/info", payload=wire.pack({"v": wire.VERSION}),
+                                     timeout=5.0))
+        finally:
+            admin.close()
+        assert len(replies) == 1 and replies[0].ok is not None
+        with dep.client("robot1", "rogue", namespace="robot1") as r1:
+            real = r1.info().server_id
+            assert r1.servers() == [real]
+            ack = r1.update("robot1/s1a", "robot1/s1b", noisy_at(rng, N, [1, 0, 0]))
+            assert ack.server == real and r1.foreign_replies == 0
+        assert got == []
+    finally:
+        for e in entities:
+            e.undeclare()
+        s.close()
