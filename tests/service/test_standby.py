@@ -14,6 +14,7 @@ import sys
 import time
 from pathlib import Path
 
+import msgpack
 import numpy as np
 import pytest
 from mcsm.recording import TOPIC_CHECKPOINT, TOPIC_OPS, RecordingReader, replay
@@ -36,6 +37,29 @@ def _inputs(path: Path) -> dict[int, str]:
             assert seq not in out, f"{path.name}: seq {seq} recorded twice"
             out[seq] = str(item.data["id"])
     return out
+
+
+def _records_valid(path: Path) -> None:
+    """Every config, checkpoint and snapshot record of a recording validates against the JSON
+    Schema its MCAP channel names (checkpoint reasons ``takeover`` and ``deposed`` included;
+    input records carry msgpack bytes, which JSON Schema cannot type)."""
+    from jsonschema import Draft202012Validator
+    from mcap.records import Channel, Message, Schema
+
+    schemas: dict[int, Draft202012Validator] = {}
+    channels: dict[int, tuple[int, str]] = {}
+    seen = 0
+    for rec in RecordingReader(path).raw():  # cut files too: up to the cut
+        if isinstance(rec, Schema):
+            schemas[rec.id] = Draft202012Validator(json.loads(rec.data))
+        elif isinstance(rec, Channel):
+            channels[rec.id] = (rec.schema_id, rec.topic)
+        elif isinstance(rec, Message) and not channels[rec.channel_id][1].startswith("/mcsm/in/"):
+            data = msgpack.unpackb(rec.data, raw=False)
+            errors = list(schemas[channels[rec.channel_id][0]].iter_errors(data))
+            assert errors == [], (path.name, channels[rec.channel_id][1], errors[:1])
+            seen += 1
+    assert seen > 0
 
 
 def _takeover_seq(path: Path) -> int | None:
@@ -127,6 +151,7 @@ def test_sync_standby_loses_nothing_over_three_kills(tmp_path: Path,
     for name, d in procs.items():
         r = replay(d.record)
         assert r.divergence is None, f"{name}: {r.divergence}"
+        _records_valid(d.record)
     for killed, successor in succession:
         t = _takeover_seq(procs[successor].record)
         assert t is not None
@@ -263,6 +288,9 @@ def test_two_primaries_that_meet_leave_one(tmp_path: Path, daemons: list[Daemon]
         procs = {"a": a, "b": b}
         assert procs[loser].proc.wait(timeout=60) == 7
         assert "stepping down" in procs[loser].log_text()
+        _records_valid(procs[loser].record)  # its last checkpoint says "deposed"
+        assert any(r.topic == TOPIC_CHECKPOINT and r.data.get("reason") == "deposed"
+                   for r in RecordingReader(procs[loser].record))
         assert procs[winner].proc.poll() is None
         for ep in (ea, eb):
             _poll("one primary", lambda e=ep: _primaries(e) == [ids[winner]], 30.0)
