@@ -282,6 +282,10 @@ class MapClient:
                                        consolidation=zenoh.ConsolidationMode.NONE,
                                        cancellation_token=token)
             got = self._collect(key, replies, timeout_s, server)
+        except zenoh.ZError:
+            if not token.is_cancelled:
+                raise
+            got = "silent"  # the server went away before the query left
         finally:
             self._waiting = None
         if token.is_cancelled and not isinstance(got, tuple):

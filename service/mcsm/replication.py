@@ -258,6 +258,12 @@ class PrimaryLink:
 
     def _contest(self, other: str) -> None:
         """Step down if ``other`` has the higher epoch (or the same and a smaller id)."""
+        try:
+            self._settle(other)
+        except (zenoh.ZError, McsmError) as exc:  # the session or the worker closed meanwhile
+            log.info("map %r: not settled with %s: %s", self.st.name, other, exc)
+
+    def _settle(self, other: str) -> None:
         epoch = None
         for _ in range(10):  # its info, a few tries while it is coming up
             for reply in self.server.session.get(self.keys.info, timeout=2.0,
