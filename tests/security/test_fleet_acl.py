@@ -14,7 +14,7 @@ from __future__ import annotations
 import json
 import signal
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -29,7 +29,7 @@ from mcsm_client.client import MapClient
 from mcsm_client.process import McsmProcess
 
 from tests.security.test_deploy import _open_fails, make_secrets
-from tests.service.daemon_util import Daemon, free_port, noisy_at, start_daemon
+from tests.service.daemon_util import Daemon, free_port, noisy_at, start_daemon, wait_for
 
 N = 32
 DENIED_S = 1.0  # how long a denied get waits for a reply that never comes
@@ -95,15 +95,6 @@ def start_fleet(secrets: Path, variant: str, work: Path) -> Fleet:
     return Fleet(variant, d, f"{proto}/127.0.0.1:{port}", router, {})
 
 
-def _poll(what: str, fn: Callable[[], object], deadline_s: float = 30.0) -> None:
-    t_end = time.monotonic() + deadline_s
-    while time.monotonic() < t_end:
-        if fn():
-            return
-        time.sleep(0.05)
-    raise AssertionError(f"{what}: not within {deadline_s} s")
-
-
 def _inputs(path: Path) -> dict[int, str]:
     """seq -> request id of every input of map ``m`` in a recording."""
     return {int(item.data["seq"]): str(item.data["id"]) for item in RecordingReader(path)
@@ -120,7 +111,7 @@ def fleet(request: pytest.FixtureRequest, secrets_dir: Path,
         f.serve(work, "server1", "primary", "--map", "m", "--sync-standbys", "1")
         f.serve(work, "server2", "standby", "--standby-of", "m")
         with f.client("viewer") as v:
-            _poll("the standby joins", lambda: len(v.info().standbys) == 1)
+            wait_for("the standby joins", lambda: len(v.info().standbys) == 1)
         yield f
     finally:
         f.stop()
@@ -151,7 +142,7 @@ def test_secured_fleet_replicates_and_a_standby_takes_over(secrets_dir: Path, tm
         p = f.serve(tmp_path, "server1", "p", "--map", "m", "--sync-standbys", "1")
         s = f.serve(tmp_path, "server2", "s", "--standby-of", "m")
         with f.client("robot1", namespace="robot1", timeout_s=30.0) as robot:
-            _poll("the standby joins", lambda: len(robot.info().standbys) == 1)
+            wait_for("the standby joins", lambda: len(robot.info().standbys) == 1)
             xs = [noisy_at(rng, N, [1, 0, 0]) for _ in range(20)]
             acks = [robot.update(f"robot1/p{i}", f"robot1/p{i + 1}", xs[i], request_id=f"r{i}")
                     for i in range(10)]
@@ -160,7 +151,7 @@ def test_secured_fleet_replicates_and_a_standby_takes_over(secrets_dir: Path, tm
             assert list(before.standbys.values()) == [10]  # the standby holds all 10
             p.proc.send_signal(signal.SIGKILL)
             p.proc.wait(timeout=10)
-            _poll("the standby takes over", lambda: robot.info().server_id != before.server_id)
+            wait_for("the standby takes over", lambda: robot.info().server_id != before.server_id)
             # K = 1 is kept: the new primary acknowledges once a standby holds the update
             p2 = f.serve(tmp_path, "server1", "p2", "--standby-of", "m")
             acks += [robot.update(f"robot1/p{i}", f"robot1/p{i + 1}", xs[i], request_id=f"r{i}")
@@ -194,7 +185,7 @@ def test_router_restart_with_the_standbys_stopped(secrets_dir: Path, tmp_path: P
         p = f.serve(tmp_path, "server1", "p", "--map", "m", "--sync-standbys", "1")
         s = f.serve(tmp_path, "server2", "s", "--standby-of", "m")
         with f.client("robot1", namespace="robot1", timeout_s=30.0) as robot:
-            _poll("the standby joins", lambda: len(robot.info().standbys) == 1)
+            wait_for("the standby joins", lambda: len(robot.info().standbys) == 1)
             acks = [robot.update(f"robot1/p{i}", f"robot1/p{i + 1}", noisy_at(rng, N, [1, 0, 0]))
                     for i in range(5)]
             assert s.stop() == 0

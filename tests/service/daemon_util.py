@@ -3,15 +3,17 @@
 from __future__ import annotations
 
 import signal
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 from mcsm.core.quat import qexp
-from mcsm_client.process import ServerProcess, free_port
+from mcsm_client.process import McsmProcess, ServerProcess, free_port, loopback_endpoint
 
 STARTUP_DEADLINE_S = 30.0
 
-__all__ = ["Daemon", "free_port", "noisy_at", "start_daemon"]
+__all__ = ["Daemon", "free_port", "noisy_at", "start_daemon", "start_router", "wait_for"]
 
 
 class Daemon(ServerProcess):
@@ -48,6 +50,33 @@ def start_daemon(workdir: Path, *args: str, record: Path | None = None,
     except RuntimeError as exc:
         raise AssertionError(str(exc)) from None
     return d
+
+
+def start_router(workdir: Path, *args: str, endpoint: str | None = None
+                 ) -> tuple[McsmProcess, str]:
+    """Run ``mcsm router --listen ENDPOINT`` (a free loopback one unless given; ``args``: more
+    flags, e.g. ``--zenoh-config``) and wait for ``routing on``; its log goes to
+    ``router-<port>.log``. Stop it with ``.stop()`` (or ``.stop(signal.SIGKILL)``)."""
+    ep = endpoint or loopback_endpoint()
+    r = McsmProcess(["router", "--listen", ep, *args], ready="routing on", cwd=workdir,
+                    log_path=workdir / f"router-{ep.rsplit(':', 1)[-1]}.log",
+                    ready_timeout_s=STARTUP_DEADLINE_S)
+    try:
+        r.start()
+    except RuntimeError as exc:
+        raise AssertionError(str(exc)) from None
+    return r, ep
+
+
+def wait_for(what: str, fn: Callable[[], object], deadline_s: float = 60.0) -> None:
+    """Poll ``fn`` every 50 ms until it is true; fail the test naming ``what`` after
+    ``deadline_s``."""
+    t_end = time.monotonic() + deadline_s
+    while time.monotonic() < t_end:
+        if fn():
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"{what}: not within {deadline_s} s")
 
 
 def noisy_at(rng: np.random.Generator, n: int, t: list[float], sigma_t: float = 0.05,

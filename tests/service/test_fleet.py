@@ -9,11 +9,9 @@ All processes on 127.0.0.1.
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -22,30 +20,14 @@ from mcsm import StochasticMap
 from mcsm_client.cli import main as client_main
 from mcsm_client.client import MapClient
 
-from tests.service.daemon_util import Daemon, free_port, noisy_at, start_daemon
+from tests.service.daemon_util import Daemon, noisy_at, start_daemon, start_router
 
 N = 32
 
 
-def _router(tmp_path: Path) -> tuple[subprocess.Popen[str], str]:
-    ep = f"tcp/127.0.0.1:{free_port()}"
-    proc = subprocess.Popen([sys.executable, "-m", "mcsm.cli", "router", "--listen", ep],
-                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
-                            cwd=tmp_path, env=dict(os.environ, PYTHONUNBUFFERED="1"))
-    assert proc.stdout is not None
-    deadline = time.monotonic() + 30.0
-    line = ""
-    while time.monotonic() < deadline and "routing on" not in line:
-        line = proc.stdout.readline()
-        if not line and proc.poll() is not None:
-            break
-    assert "routing on" in line, f"router did not start: {line!r}"
-    return proc, ep
-
-
 def test_two_servers_behind_one_router(tmp_path: Path, daemons: list[Daemon],
                                        capsys: pytest.CaptureFixture[str]) -> None:
-    router, ep = _router(tmp_path)
+    router, ep = start_router(tmp_path)
     try:
         a = start_daemon(tmp_path, "--samples", str(N), "--map", "a", "--connect", ep,
                          name="a", endpoint="-")
@@ -83,8 +65,4 @@ def test_two_servers_behind_one_router(tmp_path: Path, daemons: list[Daemon],
         for d in (a, b):
             assert d.stop(signal.SIGINT) == 0, d.log_text()
     finally:
-        router.send_signal(signal.SIGINT)
-        try:
-            router.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            router.kill()
+        router.stop()

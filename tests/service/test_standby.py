@@ -11,7 +11,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import msgpack
@@ -21,8 +20,7 @@ from mcsm.recording import TOPIC_CHECKPOINT, TOPIC_OPS, RecordingReader, replay
 from mcsm_client.cli import main as client_main
 from mcsm_client.client import MapClient
 
-from tests.service.daemon_util import Daemon, free_port, noisy_at, start_daemon
-from tests.service.test_fleet import _router
+from tests.service.daemon_util import Daemon, noisy_at, start_daemon, start_router, wait_for
 
 N = 32
 REPO = Path(__file__).resolve().parents[2]
@@ -69,16 +67,6 @@ def _takeover_seq(path: Path) -> int | None:
     return None
 
 
-def _poll(what: str, fn: object, deadline_s: float = 60.0) -> None:
-    assert callable(fn)
-    t_end = time.monotonic() + deadline_s
-    while time.monotonic() < t_end:
-        if fn():
-            return
-        time.sleep(0.05)
-    raise AssertionError(f"{what}: not within {deadline_s} s")
-
-
 def _standby(tmp: Path, ep: str, name: str, *extra: str) -> Daemon:
     return start_daemon(tmp, "--samples", str(N), "--standby-of", "m", "--connect", ep,
                         *extra, name=name, endpoint="-")
@@ -86,7 +74,7 @@ def _standby(tmp: Path, ep: str, name: str, *extra: str) -> Daemon:
 
 def test_sync_standby_loses_nothing_over_three_kills(tmp_path: Path,
                                                     daemons: list[Daemon]) -> None:
-    router, ep = _router(tmp_path)
+    router, ep = start_router(tmp_path)
     clients: list[subprocess.Popen[bytes]] = []
     try:
         procs = {"s0": start_daemon(tmp_path, "--samples", str(N), "--map", "m", "--connect",
@@ -96,7 +84,7 @@ def test_sync_standby_loses_nothing_over_three_kills(tmp_path: Path,
         daemons.append(procs["s1"])
         primary, standby = "s0", "s1"
         watcher = MapClient(map="m", connect=ep, timeout_s=30.0)
-        _poll("the standby joins", lambda: len(watcher.info().standbys) == 1)
+        wait_for("the standby joins", lambda: len(watcher.info().standbys) == 1)
         n_clients, count = 4, 40
         for i in range(n_clients):
             clients.append(subprocess.Popen(
@@ -108,18 +96,18 @@ def test_sync_standby_loses_nothing_over_three_kills(tmp_path: Path,
         succession: list[tuple[str, str]] = []  # (killed, the standby that took over)
         for kill in range(3):
             target = watcher.info().seq + int(rng.integers(5, 30))
-            _poll(f"seq {target} before kill {kill}", lambda t=target: watcher.info().seq >= t)
+            wait_for(f"seq {target} before kill {kill}", lambda t=target: watcher.info().seq >= t)
             old_id = watcher.info().server_id
             procs[primary].proc.send_signal(signal.SIGKILL)
             procs[primary].proc.wait(timeout=30)
-            _poll(f"takeover {kill}", lambda o=old_id: watcher.info().server_id != o)
+            wait_for(f"takeover {kill}", lambda o=old_id: watcher.info().server_id != o)
             succession.append((primary, standby))
             # the killed server comes back as a standby (a new process and recording)
             new = f"s{kill + 2}"
             procs[new] = _standby(tmp_path, ep, new)
             daemons.append(procs[new])
             primary, standby = standby, new
-            _poll("the new standby joins", lambda: len(watcher.info().standbys) == 1)
+            wait_for("the new standby joins", lambda: len(watcher.info().standbys) == 1)
         for i, c in enumerate(clients):
             assert c.wait(timeout=240) == 0, (tmp_path / f"client{i}.log").read_text()[-3000:]
         final = watcher.info()
@@ -130,8 +118,7 @@ def test_sync_standby_loses_nothing_over_three_kills(tmp_path: Path,
         for c in clients:
             if c.poll() is None:
                 c.kill()
-        router.kill()
-        router.wait(timeout=10)
+        router.stop(signal.SIGKILL)
     acks: dict[str, int] = {}
     for i in range(n_clients):
         for line in (tmp_path / f"acks{i}.txt").read_text().splitlines():
@@ -163,7 +150,7 @@ def test_sync_standby_loses_nothing_over_three_kills(tmp_path: Path,
 @pytest.mark.parametrize("repl_log", ["5", "2000"], ids=["snapshot", "log"])
 def test_late_standby_catches_up(tmp_path: Path, daemons: list[Daemon], repl_log: str,
                                  capsys: pytest.CaptureFixture[str]) -> None:
-    router, ep = _router(tmp_path)
+    router, ep = start_router(tmp_path)
     try:
         p = start_daemon(tmp_path, "--samples", str(N), "--map", "m", "--connect", ep,
                          "--repl-log", repl_log, name="p", endpoint="-")
@@ -176,14 +163,14 @@ def test_late_standby_catches_up(tmp_path: Path, daemons: list[Daemon], repl_log
                 c.update(f"r/{k}", f"r/{k + 1}", noisy_at(rng, N, [1.0, 0.0, 0.0]))
             s = _standby(tmp_path, ep, "s")
             daemons.append(s)
-            _poll("the standby joins", lambda: len(c.info().standbys) == 1)
+            wait_for("the standby joins", lambda: len(c.info().standbys) == 1)
             assert client_main(["servers", "--json", "--connect", ep]) == 0
             rows = json.loads(capsys.readouterr().out)["servers"]
             assert sorted(r["role"] for r in rows if r["map"] == "m") == ["primary", "standby"]
             for k in range(30, 35):
                 c.update(f"r/{k}", f"r/{k + 1}", noisy_at(rng, N, [1.0, 0.0, 0.0]))
             info = c.info()
-            _poll("the standby confirms the head",
+            wait_for("the standby confirms the head",
                   lambda: c.info().standbys and min(c.info().standbys.values()) >= info.seq)
             # the standby takes over and still knows a request id applied before it came
             p.proc.send_signal(signal.SIGKILL)
@@ -194,26 +181,10 @@ def test_late_standby_catches_up(tmp_path: Path, daemons: list[Daemon], repl_log
             assert after.server_id != info.server_id and after.digest == info.digest
         assert s.stop() == 0
     finally:
-        router.kill()
-        router.wait(timeout=10)
+        router.stop(signal.SIGKILL)
     rep = replay(s.record)
     assert rep.divergence is None and rep.final_digests()["m"] == info.digest
     assert rep.snapshots_loaded == (1 if repl_log == "5" else 0)
-
-
-def _router_at(tmp: Path, ep: str, *extra: str) -> subprocess.Popen[str]:
-    proc = subprocess.Popen([sys.executable, "-m", "mcsm.cli", "router", "--listen", ep,
-                             *extra], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
-                            text=True, cwd=tmp, env=dict(os.environ, PYTHONUNBUFFERED="1"))
-    assert proc.stdout is not None
-    deadline = time.monotonic() + 30.0
-    line = ""
-    while time.monotonic() < deadline and "routing on" not in line:
-        line = proc.stdout.readline()
-        if not line and proc.poll() is not None:
-            break
-    assert "routing on" in line, f"router did not start: {line!r}"
-    return proc
 
 
 def _primaries(ep: str) -> list[str]:
@@ -225,7 +196,7 @@ def test_a_router_restart_does_not_split_the_map(tmp_path: Path,
                                                  daemons: list[Daemon]) -> None:
     """Both servers lose the router at once: the standby sees the primary's token go, but it
     reaches nobody, so it does not take over; once the router is back it follows again."""
-    router, ep = _router(tmp_path)
+    router, ep = start_router(tmp_path)
     try:
         p = start_daemon(tmp_path, "--samples", str(N), "--map", "m", "--connect", ep,
                          name="p", endpoint="-")
@@ -234,16 +205,15 @@ def test_a_router_restart_does_not_split_the_map(tmp_path: Path,
         daemons.append(s)
         rng = np.random.default_rng(3)
         with MapClient(map="m", connect=ep, timeout_s=30.0) as c:
-            _poll("the standby joins", lambda: len(c.info().standbys) == 1)
+            wait_for("the standby joins", lambda: len(c.info().standbys) == 1)
             for k in range(5):
                 c.update(f"r/{k}", f"r/{k + 1}", noisy_at(rng, N, [1.0, 0.0, 0.0]))
             primary = c.info().server_id
-        router.kill()
-        router.wait(timeout=10)
-        _poll("the standby notices", lambda: "reaches no router" in s.log_text(), 20.0)
-        router = _router_at(tmp_path, ep)
+        router.stop(signal.SIGKILL)
+        wait_for("the standby notices", lambda: "reaches no router" in s.log_text(), 20.0)
+        router, _ = start_router(tmp_path, endpoint=ep)
         with MapClient(map="m", connect=ep, timeout_s=30.0) as c:
-            _poll("the standby follows again", lambda: len(c.info().standbys) == 1, 60.0)
+            wait_for("the standby follows again", lambda: len(c.info().standbys) == 1, 60.0)
             assert _primaries(ep) == [primary]
             for k in range(5, 10):
                 assert c.update(f"r/{k}", f"r/{k + 1}",
@@ -252,8 +222,7 @@ def test_a_router_restart_does_not_split_the_map(tmp_path: Path,
         assert "took over" not in s.log_text()
         assert s.stop() == 0 and p.stop() == 0
     finally:
-        router.kill()
-        router.wait(timeout=10)
+        router.stop(signal.SIGKILL)
     for d in (p, s):
         rep = replay(d.record)
         assert rep.divergence is None and rep.final_digests()["m"] == info.digest
@@ -263,8 +232,8 @@ def test_two_primaries_that_meet_leave_one(tmp_path: Path, daemons: list[Daemon]
     """Two servers of map ``m`` on two separate networks (as after a standby took over from a
     primary that was cut off), then a router joins the networks: the one with the lower epoch,
     here the larger id, steps down and exits 7; the other serves on."""
-    ra, ea = _router(tmp_path)
-    rb, eb = _router(tmp_path)
+    ra, ea = start_router(tmp_path)
+    rb, eb = start_router(tmp_path)
     bridge = None
     try:
         a = start_daemon(tmp_path, "--samples", str(N), "--map", "m", "--connect", ea,
@@ -281,8 +250,7 @@ def test_two_primaries_that_meet_leave_one(tmp_path: Path, daemons: list[Daemon]
         conf.write_text(json.dumps({
             "mode": "router", "connect": {"endpoints": [ea, eb]},
             "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}}}))
-        bridge = _router_at(tmp_path, f"tcp/127.0.0.1:{free_port()}", "--zenoh-config",
-                            str(conf))
+        bridge, _ = start_router(tmp_path, "--zenoh-config", str(conf))
         loser = "a" if ids["a"] > ids["b"] else "b"
         winner = "b" if loser == "a" else "a"
         procs = {"a": a, "b": b}
@@ -293,9 +261,8 @@ def test_two_primaries_that_meet_leave_one(tmp_path: Path, daemons: list[Daemon]
                    for r in RecordingReader(procs[loser].record))
         assert procs[winner].proc.poll() is None
         for ep in (ea, eb):
-            _poll("one primary", lambda e=ep: _primaries(e) == [ids[winner]], 30.0)
+            wait_for("one primary", lambda e=ep: _primaries(e) == [ids[winner]], 30.0)
     finally:
         for r in (ra, rb, bridge):
             if r is not None:
-                r.kill()
-                r.wait(timeout=10)
+                r.stop(signal.SIGKILL)
