@@ -16,7 +16,7 @@ help:
 $(STAMP): pyproject.toml setup.py service/mcsm/core/_kernel.c
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[test,eval,viz]'
+	$(PY) -m pip install --quiet -e '.[test,eval,viz,ros]'
 	@touch $(STAMP)
 
 run: $(STAMP)
