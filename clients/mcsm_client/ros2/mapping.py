@@ -143,6 +143,8 @@ def _pose(msg: Any) -> tuple[Array, Array]:
     cov = cov.reshape(6, 6)
     if np.any(np.diag(cov) < 0):
         raise MappingError("a negative variance (ROS's 'unknown covariance')")
+    if not np.allclose(cov, cov.T, rtol=1e-9, atol=1e-15):
+        raise MappingError("the covariance is not symmetric")
     return mean, cov
 
 
