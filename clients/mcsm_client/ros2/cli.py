@@ -29,7 +29,7 @@ Exit codes: 0 stopped (SIGINT/SIGTERM), 2 usage or the ros extra missing, 3 no m
 
 
 def _epilog() -> str:
-    from mcsm_client.ros2.node import PARAMETERS
+    from mcsm_client.ros2.params import PARAMETERS
 
     return EPILOG.format(params="\n".join(f"  {n} (default {d!r}): {t}"
                                           for n, (d, t) in PARAMETERS.items()))

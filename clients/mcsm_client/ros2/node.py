@@ -33,35 +33,11 @@ from mcsm.viz.rosbag import path_topic, write_map_bag
 
 from mcsm_client.ros2.bag import ApplyStats, send
 from mcsm_client.ros2.mapping import MappingError, MappingOptions, MessageMapper, order_key
+from mcsm_client.ros2.params import PARAMETERS
 
 log = logging.getLogger("mcsm.ros2")
 
 __all__ = ["NodeOptions", "RosNode", "PARAMETERS"]
-
-#: every parameter: name -> (default, description)
-PARAMETERS: dict[str, tuple[Any, str]] = {
-    "odometry_topics": (["/odom"], "nav_msgs/Odometry topics of robots' cumulative odometry "
-                        "(keyframes)"),
-    "constraint_topics": (["/mcsm/constraints"], "nav_msgs/Odometry topics of relative poses "
-                          "header.frame_id -> child_frame_id"),
-    "landmark_topics": (["/mcsm/landmarks"], "nav_msgs/Odometry topics of point landmarks "
-                        "child_frame_id seen from header.frame_id"),
-    "frame_prefix": ("", "prepended to every ROS frame id ('robot1' -> 'robot1/base_link')"),
-    "keyframe_distance_m": (0.5, "a new odometry keyframe after this much travel (m)"),
-    "keyframe_angle_rad": (0.5, "... or this much turn (rad)"),
-    "reorder_window_s": (0.2, "inputs wait this long to be applied in stamp order (s)"),
-    "publish_period_s": (1.0, "TF, paths, markers, poses and diagnostics every this long (s)"),
-    "map_frame": ("map", "the ROS frame of the map (TF parent of the origin's component)"),
-    "origin_frame": ("", "the map's frame placed at map_frame's origin (default: the first "
-                     "frame this node adds, else the map's first frame)"),
-    "pose_pairs": ([""], "'A:B' entries: publish B in A as PoseWithCovarianceStamped on "
-                   "/mcsm/pose/<B>"),
-    "tf_skip": ([""], "map frames not to publish on /tf (frames another node publishes)"),
-    "snapshot_dir": (".", "folder of the bags ~/snapshot writes"),
-    "retract": ("", "set to a request id: retract that update (result in the reply)"),
-    "reinstate": ("", "set to a request id: reinstate that update"),
-}
-
 
 @dataclass
 class NodeOptions:
@@ -129,6 +105,7 @@ class RosNode:
         self._placed: list[ros.PlacedFrame] = []
         self._make = _rclpy_maker(load_tfmessage())
         self.published = 0
+        self.last_action = ""
         inputs = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -314,6 +291,7 @@ class RosNode:
                   "invalid_messages": s.invalid, "odometry_between_keyframes": s.not_keyframes,
                   "queue_length": self.queue_length, "last_verdict": s.last_verdict,
                   "last_request_id": s.last_request_id, "first_error": s.first_error,
+                  "last_action": self.last_action,
                   "seq": info.seq if info else "", "digest": info.digest if info else "",
                   "frames": info.n_frames if info else "",
                   "components": len(info.components) if info else ""}
@@ -368,8 +346,10 @@ class RosNode:
                                                reason=f"{type(exc).__name__}: {exc}")
                 self._changed.set()
                 v = ack.verdict.status if ack.verdict is not None else ack.kind
-                return SetParametersResult(successful=True,
-                                           reason=f"{p.name} {p.value}: seq {ack.seq}, {v}")
+                # rclpy drops a successful result's reason: diagnostics carry it
+                self.last_action = f"{p.name} {p.value}: seq {ack.seq}, {v}"
+                log.info("%s", self.last_action)
+                return SetParametersResult(successful=True, reason=self.last_action)
         return SetParametersResult(successful=True)
 
 
