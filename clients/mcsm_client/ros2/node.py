@@ -128,6 +128,7 @@ class RosNode:
         self._changed.set()
         self._timer = node.create_timer(min(opts.publish_period_s, 0.1), self._tick)
         self._last_publish = 0.0
+        self._t0 = time.perf_counter()
         self._worker = threading.Thread(target=self._work, name="mcsm-ros2-worker", daemon=True)
         self._worker.start()
 
@@ -217,6 +218,7 @@ class RosNode:
         with self._lock:
             self._lock.notify_all()
         self._worker.join(timeout=30.0)
+        self.stats.elapsed_s = time.perf_counter() - self._t0
 
     # ------------------------------------------------------------------ publications
     def _tick(self) -> None:
