@@ -47,6 +47,12 @@ def test_node_streams_the_simulation(tmp_path: Path, ros_server: ServerProcess,
                           "cov": m.cov.tolist()} for m in msgs],
             "frames": frames, "poses": sum(f.startswith("x") for f in frames),
             "retract": target, "n_constraints": len(reference.ids)}
+    # hostile inputs: a NaN pose, an 'unknown' (negative) variance, equal frames: counted as
+    # invalid, never sent, the node goes on
+    last = spec["messages"][-1]
+    bad_cov = np.diag([-1.0, 1, 1, 1, 1, 1]).tolist()
+    spec["messages"] += [dict(last, mean=[float("nan")] + last["mean"][1:]),
+                         dict(last, cov=bad_cov), dict(last, child=last["frame_id"])]
     (tmp_path / "in.json").write_text(json.dumps(spec))
     snapshots = tmp_path / "snapshots"
     snapshots.mkdir()
@@ -95,11 +101,12 @@ def test_node_streams_the_simulation(tmp_path: Path, ros_server: ServerProcess,
     has_relin = hasattr(MapClient, "relinearize")
     assert out["relinearize"][0] is has_relin, out  # no relinearize operation before it lands
     d = out["diagnostics"]
-    assert d["received"] == str(len(msgs)) and d["applied"] == str(len(reference.ids))
-    assert d["refused"] == "0" and d["invalid_messages"] == "0" and d["queue_length"] == "0"
+    assert d["received"] == str(len(msgs) + 3) and d["applied"] == str(len(reference.ids))
+    assert d["refused"] == "0" and d["invalid_messages"] == "3" and d["queue_length"] == "0"
     assert d["last_action"].startswith(f"reinstate {target}: seq {reference.seq + 2}, "
                                        "reinstated"), d
     assert d["digest"] == reference.digest and d["seq"] == str(reference.seq + 2)
+    assert out["diagnostics_level"] == 1  # WARN: invalid messages were seen
     log = node.log_text()
     assert "stopped:" in log or "stopped:" in "".join(iter_lines(node))
 

@@ -133,3 +133,20 @@ def test_export_rosbag_round_trip(tmp_path: Path, ros_server: ServerProcess,
         want = odo["l3" if "l3" in frames else "x1"].pose.pose.position
         sd = np.sqrt(np.diag(cov)[:2])
         assert np.all(np.abs(mean[:2] - [want.x, want.y]) < 5 * sd / np.sqrt(8) + 1e-9)
+
+
+def test_play_rosbag_counts_invalid_messages(tmp_path: Path, ros_server: ServerProcess,
+                                             reference: Reference,
+                                             capsys: pytest.CaptureFixture[str]) -> None:
+    """A message the mapping refuses (equal frame ids) is counted, not sent: exit 1."""
+    from mcsm.viz.rosmsg import odometry, rosbags_maker
+
+    bad = odometry(rosbags_maker(STORE), 1, "x0", "x0", reference.messages[0].mean,
+                   reference.messages[0].cov)
+    bag = tmp_path / "bad"
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.SQLITE3) as w:
+        c = w.add_connection("/mcsm/constraints", "nav_msgs/msg/Odometry", typestore=STORE)
+        w.write(c, 1, STORE.serialize_cdr(bad, "nav_msgs/msg/Odometry"))
+    code, out = play(ros_server, bag, "round", capsys)
+    assert code == 1 and out["invalid"] == 1 and out["applied"] == {}
+    assert "both 'x0'" in str(out["first_error"])

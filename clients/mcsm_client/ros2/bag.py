@@ -202,7 +202,7 @@ def play_rosbag(path: str | Path, client: Any, options: MappingOptions | None = 
         stats.received += 1
         try:
             constraints = mapper.map(m.topic, m.msg, n)
-        except MappingError as exc:
+        except (MappingError, ValueError, ArithmeticError) as exc:  # numpy's LinAlgError too
             stats.invalid_message(f"{m.topic} at {m.key[0]} ns", exc)
             constraints = []
         else:

@@ -32,7 +32,7 @@ from mcsm.viz import ros, rosmsg
 from mcsm.viz.rosbag import path_topic, write_map_bag
 
 from mcsm_client.ros2.bag import ApplyStats, send
-from mcsm_client.ros2.mapping import MappingError, MappingOptions, MessageMapper, order_key
+from mcsm_client.ros2.mapping import MappingOptions, MessageMapper, order_key
 from mcsm_client.ros2.params import PARAMETERS
 
 log = logging.getLogger("mcsm.ros2")
@@ -176,7 +176,7 @@ class RosNode:
             self.stats.received += 1
             try:
                 constraints = self.mapper.map(topic, msg, self.n_samples)
-            except MappingError as exc:
+            except Exception as exc:  # MappingError, or numpy on a hostile message: skip it
                 self.stats.invalid_message(topic, exc)
                 log.warning("invalid message on %s: %s", topic, exc)
                 continue
@@ -234,6 +234,8 @@ class RosNode:
         except McsmError as exc:
             log.warning("could not fetch the map: %s", exc)
             self._changed.set()
+        except Exception:  # never let a publication error stop the node
+            log.exception("publishing the map failed")
 
     def fetch(self) -> list[ros.PlacedFrame]:
         """Every frame's marginal now (one export per component); cached per seq."""
@@ -317,7 +319,7 @@ class RosNode:
                 ack = fn()
             resp.success, resp.message = True, f"relinearized: seq {getattr(ack, 'seq', '?')}"
             self._changed.set()
-        except McsmError as exc:
+        except Exception as exc:  # McsmError, or a relinearize that wants arguments
             resp.success, resp.message = False, f"{type(exc).__name__}: {exc}"
         return resp
 
