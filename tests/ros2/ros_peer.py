@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseWithCovarianceStamped
 from mcsm.viz.rosmsg import odometry
 from mcsm_client.ros2.tf2 import load_tfmessage
 from nav_msgs.msg import Odometry, Path
@@ -75,6 +76,12 @@ def main() -> int:
     node.create_subscription(MarkerArray, "/mcsm/markers", on_markers, latched)
     node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)
 
+    def on_pose(msg: Any) -> None:
+        p = msg.pose.pose.position
+        out["pose"] = [msg.header.frame_id, p.x, p.y, list(msg.pose.covariance)]
+
+    node.create_subscription(PoseWithCovarianceStamped, "/mcsm/pose/x5", on_pose, latched)
+
     def spin_until(cond: Any, timeout_s: float) -> bool:
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
@@ -91,7 +98,7 @@ def main() -> int:
     want = set(spec["frames"])
     out["complete"] = spin_until(lambda: want <= set(out["tf"]) and
                                  out["path"] >= spec["poses"] and
-                                 out["markers"] >= 1 + 2 * len(want), 30.0)
+                                 out["markers"] >= 1 + 2 * len(want) and "pose" in out, 30.0)
 
     def call(srv_type: Any, name: str, req: Any) -> Any:
         cli = node.create_client(srv_type, name)
@@ -112,8 +119,11 @@ def main() -> int:
         r = call(Trigger, f"{NODE}/{srv}", Trigger.Request())
         out[srv] = [r.success, r.message] if r else None
     n_diag = spec["n_constraints"]
+    # the publications after the reinstate (diagnostics come last in each round)
     spin_until(lambda: out["diagnostics"].get("received") == str(len(spec["messages"]))
-               and int(out["diagnostics"].get("applied", -1)) >= n_diag, 10.0)
+               and int(out["diagnostics"].get("applied", -1)) >= n_diag
+               and out["diagnostics"].get("last_action", "").startswith("reinstate"), 10.0)
+    spin_until(lambda: False, 0.3)
     with open(sys.argv[2], "w") as f:
         json.dump(out, f)
     node.destroy_node()

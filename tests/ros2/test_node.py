@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from mcsm.viz.ros import tangent_cov_to_ros
 from mcsm_client.client import MapClient
 from mcsm_client.process import McsmProcess, ServerProcess
 
@@ -80,6 +81,7 @@ def test_node_streams_the_simulation(tmp_path: Path, ros_server: ServerProcess,
             assert c.verdict(target).status == "reinstated"  # type: ignore[union-attr]
             last = f"x{spec['poses'] - 1}"
             mean, _ = c.marginal("x0", last)
+            mean5, cov5 = c.marginal("x0", "x5")
         code = node.stop()
     assert code == 0, node.log_tail(20)
     assert out["matched"] and out["complete"], out
@@ -89,6 +91,11 @@ def test_node_streams_the_simulation(tmp_path: Path, ros_server: ServerProcess,
     assert out["tf"][last][0] == "map"
     np.testing.assert_allclose(out["tf"][last][1:], mean[:2], atol=1e-9)
     assert out["path"] == spec["poses"] and out["path_frame"] == "map"
+    # pose_pairs x0:x5: x5 in x0 with ROS's covariance
+    assert out["pose"][0] == "x0"
+    np.testing.assert_allclose(out["pose"][1:3], mean5[:2], atol=1e-12)
+    np.testing.assert_allclose(np.reshape(out["pose"][3], (6, 6)),
+                               tangent_cov_to_ros(mean5, cov5), atol=1e-15)
     assert out["markers"] == 1 + 2 * len(frames)
     assert out["marker_ns"] == ["mcsm", "mcsm/labels", "mcsm/landmarks", "mcsm/poses"]
     assert out["labels"] == frames
