@@ -141,7 +141,7 @@ def add_parser(sub: Any) -> None:
                                    "--at SEQ), as a ROS 2 bag with MCAP storage: /tf, "
                                    "/mcsm/frames (nav_msgs/Odometry: pose and covariance of "
                                    "every frame), /mcsm/path[/ROBOT] (nav_msgs/Path), "
-                                   "/mcsm/markers (95 %% regions and labels). docs/ros2.md.")
+                                   "/mcsm/markers (95 % regions and labels). docs/ros2.md.")
     e.add_argument("file", type=Path, help="recording (.mcap) written by mcsm serve")
     e.add_argument("-o", "--output", type=Path, required=True, metavar="BAG",
                    help="the bag's folder (rosbag2 layout; refused if it exists)")
