@@ -16,7 +16,8 @@ help:
 $(STAMP): pyproject.toml setup.py service/mcsm/core/_kernel.c
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[test,eval,viz]'
+	$(PY) -m pip install --quiet -e '.[test,eval,viz,ros]'
+	$(PY) -m mcsm_client.ros2.tf2 >/dev/null  # tf2_msgs/TFMessage for mcsm ros2 (cached)
 	@touch $(STAMP)
 
 run: $(STAMP)
@@ -26,8 +27,12 @@ lint: $(STAMP)
 	$(PY) -m ruff check service clients tests benchmarks experiments
 	$(PY) -m mypy --strict service/mcsm clients/mcsm_client
 
+# PyPI's ROS wheels (the ros extra) make every Python of the venv re-exec itself once to set
+# LD_LIBRARY_PATH (ros_wheels_bootstrapper.pth, about 70 ms a process): the suite sets it once.
+ROS_ENV = LD_LIBRARY_PATH="$$(_ROS_WHEELS_BOOTSTRAP_COMPLETE=1 $(PY) -c 'import ros_wheels_bootstrapper as b; print(b.get_ros_paths())')" _ROS_WHEELS_BOOTSTRAP_COMPLETE=1
+
 test: lint
-	$(PY) -m pytest -q
+	$(ROS_ENV) $(PY) -m pytest -q
 
 bench: $(STAMP)
 	$(PY) benchmarks/run_all.py

@@ -12,6 +12,7 @@ Commands (each takes the connection flags ``--connect``, ``--map``, ``--prefix``
     mcsm-client remove FRAME
     mcsm-client watch [--count K] [--duration-s S]
     mcsm-client play FILE|gtsam:NAME [--bounded] [--order file|pose] [--max-constraints K]
+    mcsm-client play-rosbag BAG [--constraint-topic T] [--landmark-topic T] [--odometry-topic T]
     mcsm-client sim [--iterations 340] [--sigma-theta-deg 0] [--csv F] [--png F]
     mcsm-client multirobot [--connect-b ENDPOINT | --map-b NAME]
 
@@ -178,6 +179,28 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--no-progress", action="store_true")
     s.add_argument("--json", action="store_true", help="print the summary as JSON")
     _add_in_process(s)
+    _add_common(s)
+
+    s = sub.add_parser("play-rosbag", help="stream a ROS 2 bag (MCAP or sqlite3) into the map, "
+                       "mapped as mcsm ros2 maps messages (ros extra: rosbags)",
+                       description="Read a ROS 2 bag with rosbags (no ROS installation "
+                                   "needed) and send its nav_msgs/Odometry messages of the "
+                                   "input topics as mcsm ros2 would: in header-stamp order, "
+                                   "samples and request ids from each message (a bag played "
+                                   "twice is applied once). docs/ros2.md.")
+    s.add_argument("bag", type=Path, help="the bag (its folder, or one .mcap/.db3 file)")
+    s.add_argument("--odometry-topic", action="append", default=None, metavar="TOPIC",
+                   help="a cumulative odometry topic, keyframed (repeatable; default /odom)")
+    s.add_argument("--constraint-topic", action="append", default=None, metavar="TOPIC",
+                   help="a relative-pose topic (repeatable; default /mcsm/constraints)")
+    s.add_argument("--landmark-topic", action="append", default=None, metavar="TOPIC",
+                   help="a point-landmark topic (repeatable; default /mcsm/landmarks)")
+    s.add_argument("--frame-prefix", default="", metavar="NS",
+                   help="prepended to every frame id (NS/base_link)")
+    s.add_argument("--keyframe-distance-m", type=float, default=0.5)
+    s.add_argument("--keyframe-angle-rad", type=float, default=0.5)
+    s.add_argument("--no-progress", action="store_true")
+    s.add_argument("--json", action="store_true", help="print the summary as JSON")
     _add_common(s)
 
     s = sub.add_parser("sim", help="the paper's §6 simulation: RMS and NEES vs ground truth")
@@ -619,6 +642,33 @@ def cmd_play(args: argparse.Namespace) -> int:
     return EXIT_REFUSED if stats.rejected else EXIT_OK
 
 
+def cmd_play_rosbag(args: argparse.Namespace) -> int:
+    """``play-rosbag``: a ROS 2 bag through the node's mapping; exit 1 if anything was refused
+    or rejected, or a message was invalid."""
+    if importlib.util.find_spec("rosbags") is None:
+        raise UsageError("play-rosbag needs rosbags: pip install 'mcsm[ros]'")
+    from mcsm_client.ros2.bag import BagError, play_rosbag
+    from mcsm_client.ros2.mapping import MappingOptions
+
+    d = MappingOptions()
+    opts = MappingOptions(
+        odometry_topics=tuple(args.odometry_topic or d.odometry_topics),
+        constraint_topics=tuple(args.constraint_topic or d.constraint_topics),
+        landmark_topics=tuple(args.landmark_topic or d.landmark_topics),
+        frame_prefix=args.frame_prefix, keyframe_distance_m=args.keyframe_distance_m,
+        keyframe_angle_rad=args.keyframe_angle_rad)
+    bar = _Progress("play-rosbag", not args.no_progress)
+    try:
+        with _client(args) as c:
+            stats = play_rosbag(args.bag, c, opts, progress=bar)
+    except BagError as exc:
+        raise UsageError(str(exc)) from None
+    text = stats.summary() + (f"\nfirst problem: {stats.first_error}" if stats.first_error
+                              else "")
+    _print(args, {"bag": str(args.bag), **stats.as_dict()}, text)
+    return EXIT_REFUSED if (stats.rejected or stats.n_refused or stats.invalid) else EXIT_OK
+
+
 def cmd_sim(args: argparse.Namespace) -> int:
     """``sim``: the paper's §6 simulation with per-iteration scores."""
     from mcsm_client.sim import SimConfig, plot_results, run_sim
@@ -704,7 +754,8 @@ def cmd_multirobot(args: argparse.Namespace) -> int:
 COMMANDS = {"info": cmd_info, "update": cmd_update, "query": cmd_query, "remove": cmd_remove,
             "retract": cmd_retract, "reinstate": cmd_retract, "verdict": cmd_verdict,
             "servers": cmd_servers, "audit": cmd_audit,
-            "watch": cmd_watch, "play": cmd_play, "sim": cmd_sim, "multirobot": cmd_multirobot}
+            "watch": cmd_watch, "play": cmd_play, "play-rosbag": cmd_play_rosbag, "sim": cmd_sim,
+            "multirobot": cmd_multirobot}
 
 
 def main(argv: list[str] | None = None) -> int:

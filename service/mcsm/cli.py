@@ -15,6 +15,8 @@
               [--view auto|top|xz|yz|3d]
     mcsm export-foxglove FILE.mcap -o scene.mcap [--every K] [--map NAME]
     mcsm view [--connect ENDPOINT] [--map NAME] [--foxglove-port P]
+    mcsm export-rosbag FILE.mcap -o BAG [--map NAME] [--at SEQ]          (ros extra)
+    mcsm ros2 [--connect ENDPOINT | --serve] [--ros-args ...]            (ros extra)
     mcsm --version
 
 ``serve`` prints one line ``listening on <endpoint>`` on stdout when it is ready, and closes
@@ -203,7 +205,31 @@ def build_parser() -> argparse.ArgumentParser:
     from mcsm.viz.commands import add_parsers as add_viz_parsers
 
     add_viz_parsers(sub)  # plot, export-foxglove, view (docs/visualising.md)
+    from mcsm.viz.rosbag import add_parser as add_export_rosbag
+
+    add_export_rosbag(sub)  # export-rosbag (docs/ros2.md)
+    add_plugin_commands(sub)  # e.g. ros2, from the mcsm-client package
     return p
+
+
+#: entry-point group of subcommands other packages add to ``mcsm`` (``mcsm ros2``): each entry
+#: point is a function ``add_parser(subparsers)`` that adds its subparser and sets its
+#: ``run(args) -> int`` with ``set_defaults(plugin_run=...)``. mcsm never imports them by name,
+#: so the server package depends on no client package.
+PLUGIN_GROUP = "mcsm.commands"
+
+
+def add_plugin_commands(sub: Any) -> None:
+    """Add the subcommands of :data:`PLUGIN_GROUP`; one that fails to load is skipped with a
+    warning on stderr (mcsm's own commands still work)."""
+    from importlib.metadata import entry_points
+
+    for ep in sorted(entry_points(group=PLUGIN_GROUP), key=lambda e: e.name):
+        try:
+            ep.load()(sub)
+        except Exception as exc:  # a broken plugin must not break mcsm
+            print(f"mcsm: warning: subcommand {ep.name!r} ({ep.value}) not loaded: "
+                  f"{type(exc).__name__}: {exc}", file=sys.stderr)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -211,7 +237,16 @@ def main(argv: list[str] | None = None) -> int:
 
     # `mcsm --listen X serve` works like `mcsm serve --listen X`
     argv = flags_after_command(sys.argv[1:] if argv is None else list(argv), "serve")
-    args = build_parser().parse_args(argv)
+    ros_args: list[str] = []
+    if "--ros-args" in argv:  # ROS's convention: everything from --ros-args on is ROS's
+        at = argv.index("--ros-args")
+        argv, ros_args = argv[:at], argv[at:]
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if ros_args:
+        if not hasattr(args, "ros_args"):
+            parser.error(f"--ros-args is for mcsm ros2, not mcsm {args.command}")
+        args.ros_args = ros_args
     try:
         if args.command == "serve":
             return serve(args)
@@ -223,6 +258,12 @@ def main(argv: list[str] | None = None) -> int:
             return recover_cmd(args)
         if args.command == "cat":
             return cat_cmd(args)
+        if getattr(args, "plugin_run", None) is not None:
+            return int(args.plugin_run(args))
+        if args.command == "export-rosbag":
+            from mcsm.viz.rosbag import run as run_export_rosbag
+
+            return run_export_rosbag(args)
         if args.command in ("plot", "export-foxglove", "view"):
             from mcsm.viz.commands import run as run_viz
 
