@@ -32,9 +32,9 @@ def message_class(schema_name: str, file_descriptor_set: bytes) -> Any:
 def check_scene_against_map(scene: Any, m: Any) -> dict[str, Any]:
     """Assert that a decoded ``foxglove.SceneUpdate`` shows map ``m``: one entity per frame in
     its root frame, the sphere at the sample mean, its size and orientation those of the 95 %
-    ellipsoid of the sample covariance (computed here with numpy/scipy). Returns the entities
-    by frame name."""
-    k = chi2.ppf(0.95, 3)
+    ellipsoid of the sample covariance (computed here with numpy/scipy: χ² with as many
+    degrees of freedom as the covariance spans, 2 for a planar map). Returns the entities by
+    frame name."""
     ents = {e.id[len("frame/"):]: e for e in scene.entities if e.id.startswith("frame/")}
     want = {f: r for r in m.components() for f in m.component(r)}
     assert set(ents) == set(want)
@@ -49,6 +49,8 @@ def check_scene_against_map(scene: Any, m: Any) -> dict[str, Any]:
         np.testing.assert_allclose([p.x, p.y, p.z], xyz.mean(axis=0), rtol=1e-12, atol=1e-12)
         sizes = np.array([sphere.size.x, sphere.size.y, sphere.size.z])
         lam = np.clip(np.linalg.eigvalsh(cov), 0, None)
+        lam[lam <= 1e-12 * lam.max()] = 0.0
+        k = chi2.ppf(0.95, max(1, int(np.count_nonzero(lam))))
         np.testing.assert_allclose(np.sort(sizes), 2 * np.sqrt(k * lam), rtol=1e-9,
                                    atol=1e-12, err_msg=name)
         o = sphere.pose.orientation

@@ -20,14 +20,22 @@ from tests.viz.conftest import Recording, build_map
 matplotlib.use("Agg")
 
 
+def chi2_for(lam: np.ndarray) -> float:
+    """χ²(0.95) for as many degrees of freedom as eigenvalues ``lam`` span (a planar map's
+    side view spans 1, its top view 2)."""
+    lam = np.clip(lam, 0, None)
+    return float(chi2.ppf(0.95, max(1, int(np.count_nonzero(lam > 1e-12 * lam.max())))))
+
+
 def expected_ellipses(m: object, axes: tuple[int, int]) -> dict[str, tuple[float, ...]]:
     """Centre and full axes of each frame's 95 % ellipse, from the samples with numpy/scipy."""
     out = {}
-    k = chi2.ppf(0.95, 2)
     for root in m.components():  # type: ignore[attr-defined]
         for f in m.component(root):  # type: ignore[attr-defined]
             xyz = m.query(root, f)[:, :3][:, list(axes)]  # type: ignore[attr-defined]
             lam = np.linalg.eigvalsh(np.cov(xyz.T))
+            k = chi2_for(lam)
+            lam[lam <= 1e-12 * lam.max()] = 0.0
             c = xyz.mean(axis=0)
             out[f] = (c[0], c[1], 2 * np.sqrt(k * max(lam[1], 0)), 2 * np.sqrt(k * max(lam[0], 0)))
     return out
@@ -84,9 +92,10 @@ def test_plot_3d_and_truth(recording: Recording, tmp_path: Path) -> None:
     res = plot_map(mv, tmp_path / "t.png", view="3d", truth=truth)
     assert res.view == "3d" and len(res.ellipsoids) == len(mv.frames)
     assert res.truth_drawn == ["l0"] and res.truth_missing == ["nowhere"]
-    k = chi2.ppf(0.95, 3)
     for f in mv.frames:
         lam = np.clip(np.linalg.eigvalsh(f.cov[:3, :3]), 0, None)
+        k = chi2_for(lam)
+        lam[lam <= 1e-12 * lam.max()] = 0.0
         np.testing.assert_allclose(sorted(res.ellipsoids[f.name].sizes), 2 * np.sqrt(k * lam),
                                    atol=1e-12)
 

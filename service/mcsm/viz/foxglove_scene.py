@@ -34,7 +34,8 @@ from typing import Any, cast
 import numpy as np
 
 from mcsm.viz import require
-from mcsm.viz.scene import Ellipsoid, MapView, ellipsoid, map_view
+from mcsm.viz.ellipse import Ellipsoid, ellipsoid
+from mcsm.viz.scene import MapView, map_view
 
 #: component colours (RGB), the first ones of matplotlib's tab10 like ``mcsm plot``
 PALETTE = [(0.12, 0.47, 0.71), (1.0, 0.5, 0.05), (0.17, 0.63, 0.17), (0.84, 0.15, 0.16),

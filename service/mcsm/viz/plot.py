@@ -21,16 +21,8 @@ from typing import Any
 import numpy as np
 
 from mcsm.viz import require
-from mcsm.viz.scene import (
-    P_REGION,
-    Array,
-    Ellipse,
-    Ellipsoid,
-    MapView,
-    ellipse,
-    ellipsoid,
-    is_planar,
-)
+from mcsm.viz.ellipse import P_REGION, Ellipse, Ellipsoid, ellipse, ellipsoid
+from mcsm.viz.scene import Array, MapView, is_planar
 
 VIEWS = ("auto", "top", "xz", "yz", "3d")
 _AXES = {"top": (0, 1), "xz": (0, 2), "yz": (1, 2)}

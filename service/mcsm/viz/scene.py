@@ -6,9 +6,8 @@ frame)``) and optionally its samples. Every frame is expressed in the root frame
 component: components of one map are unrelated (PAPER §3), so a picture draws each one around
 its own root.
 
-The 95 % regions are those of a Gaussian with the marginal's translation covariance: an
-ellipse ``{x : (x − μ)ᵀ Σ⁻¹ (x − μ) ≤ χ²₂(0.95)}`` for a 2-D projection and an ellipsoid with
-``χ²₃(0.95)`` in 3-D. Full axis lengths are ``2 sqrt(χ² λᵢ)`` for the eigenvalues ``λᵢ`` of Σ.
+The 95 % regions are those of a Gaussian with the marginal's translation covariance, defined
+once in :mod:`mcsm.viz.ellipse` (χ² with as many degrees of freedom as the covariance spans).
 """
 
 from __future__ import annotations
@@ -26,133 +25,15 @@ import numpy.typing as npt
 from mcsm.core import StochasticMap
 from mcsm.errors import McsmError
 
+# the one region definition of every picture (re-exported here for older imports)
+from mcsm.viz.ellipse import P_REGION as P_REGION
+from mcsm.viz.ellipse import Ellipse as Ellipse
+from mcsm.viz.ellipse import Ellipsoid as Ellipsoid
+from mcsm.viz.ellipse import chi2_quantile as chi2_quantile
+from mcsm.viz.ellipse import ellipse as ellipse
+from mcsm.viz.ellipse import ellipsoid as ellipsoid
+
 Array = npt.NDArray[np.float64]
-
-#: probability mass inside every drawn ellipse / ellipsoid
-P_REGION = 0.95
-
-
-def chi2_quantile(p: float, dof: int) -> float:
-    """Quantile of the χ² distribution with 1, 2 or 3 degrees of freedom.
-
-    Closed-form CDFs (``erf`` for 1 and 3 dof, ``1 − exp(−x/2)`` for 2), inverted by bisection
-    to machine precision; no scipy needed.
-    """
-    if not 0.0 < p < 1.0:
-        raise ValueError(f"p must be in (0, 1), got {p}")
-    if dof == 2:
-        return -2.0 * math.log1p(-p)
-
-    def cdf(x: float) -> float:
-        if dof == 1:
-            return math.erf(math.sqrt(x / 2.0))
-        if dof == 3:
-            return (math.erf(math.sqrt(x / 2.0))
-                    - math.sqrt(2.0 * x / math.pi) * math.exp(-x / 2.0))
-        raise ValueError(f"dof must be 1, 2 or 3, got {dof}")
-
-    lo, hi = 0.0, 1.0
-    while cdf(hi) < p:
-        hi *= 2.0
-    for _ in range(200):
-        mid = 0.5 * (lo + hi)
-        if cdf(mid) < p:
-            lo = mid
-        else:
-            hi = mid
-        if hi - lo <= 1e-15 * hi:
-            break
-    return 0.5 * (lo + hi)
-
-
-@dataclass(frozen=True)
-class Ellipse:
-    """A 2-D confidence ellipse: centre, full axis lengths, angle of ``width`` from +x (deg)."""
-
-    center: tuple[float, float]
-    width: float
-    height: float
-    angle_deg: float
-
-
-@dataclass(frozen=True)
-class Ellipsoid:
-    """A 3-D confidence ellipsoid: centre, full axis lengths along its own x, y, z, and the
-    rotation of those axes into the parent frame as a unit quaternion ``(x, y, z, w)``
-    (Foxglove's order)."""
-
-    center: tuple[float, float, float]
-    sizes: tuple[float, float, float]
-    quat_xyzw: tuple[float, float, float, float]
-
-    def rotation(self) -> Array:
-        """The 3×3 rotation matrix of :attr:`quat_xyzw`."""
-        x, y, z, w = self.quat_xyzw
-        return np.array([
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-
-
-def ellipse(mean2: npt.ArrayLike, cov2: npt.ArrayLike, p: float = P_REGION) -> Ellipse:
-    """The ``p`` confidence ellipse of a 2-D Gaussian (``width`` along the major axis).
-
-    Parameters
-    ----------
-    mean2 : (2,) float64, metres
-    cov2 : (2, 2) float64, m²; negative eigenvalues from round-off count as 0
-    """
-    c = np.asarray(cov2, dtype=np.float64)
-    lam, vec = np.linalg.eigh(0.5 * (c + c.T))
-    lam = np.clip(lam, 0.0, None)
-    k = chi2_quantile(p, 2)
-    major = vec[:, 1]
-    m = np.asarray(mean2, dtype=np.float64)
-    return Ellipse((float(m[0]), float(m[1])), float(2.0 * math.sqrt(k * lam[1])),
-                   float(2.0 * math.sqrt(k * lam[0])),
-                   float(math.degrees(math.atan2(major[1], major[0]))))
-
-
-def _quat_xyzw(r: Array) -> tuple[float, float, float, float]:
-    """Unit quaternion ``(x, y, z, w)`` of a rotation matrix (Shepperd's method)."""
-    t = float(np.trace(r))
-    if t > 0:
-        s = 2.0 * math.sqrt(1.0 + t)
-        w, x, y, z = 0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, \
-            (r[1, 0] - r[0, 1]) / s
-    elif r[0, 0] > r[1, 1] and r[0, 0] > r[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2])
-        w, x, y, z = (r[2, 1] - r[1, 2]) / s, 0.25 * s, (r[0, 1] + r[1, 0]) / s, \
-            (r[0, 2] + r[2, 0]) / s
-    elif r[1, 1] > r[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2])
-        w, x, y, z = (r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, 0.25 * s, \
-            (r[1, 2] + r[2, 1]) / s
-    else:
-        s = 2.0 * math.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1])
-        w, x, y, z = (r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, \
-            (r[1, 2] + r[2, 1]) / s, 0.25 * s
-    n = math.sqrt(w * w + x * x + y * y + z * z)
-    return (float(x / n), float(y / n), float(z / n), float(w / n))
-
-
-def ellipsoid(mean3: npt.ArrayLike, cov3: npt.ArrayLike, p: float = P_REGION) -> Ellipsoid:
-    """The ``p`` confidence ellipsoid of a 3-D Gaussian.
-
-    Its axes are the eigenvectors of ``cov3`` (one flipped if needed to make a rotation), its
-    full lengths ``2 sqrt(χ²₃(p) λᵢ)``.
-    """
-    c = np.asarray(cov3, dtype=np.float64)
-    lam, vec = np.linalg.eigh(0.5 * (c + c.T))
-    lam = np.clip(lam, 0.0, None)
-    if np.linalg.det(vec) < 0:
-        vec[:, 0] = -vec[:, 0]
-    k = chi2_quantile(p, 3)
-    sizes = 2.0 * np.sqrt(k * lam)
-    m = np.asarray(mean3, dtype=np.float64)
-    return Ellipsoid((float(m[0]), float(m[1]), float(m[2])),
-                     (float(sizes[0]), float(sizes[1]), float(sizes[2])), _quat_xyzw(vec))
-
 
 # --------------------------------------------------------------------------------------------
 # The map as pictures see it
