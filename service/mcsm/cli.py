@@ -202,8 +202,44 @@ def build_parser() -> argparse.ArgumentParser:
 
     from mcsm.viz.commands import add_parsers as add_viz_parsers
 
-    add_viz_parsers(sub)  # plot, export-foxglove, view (docs/visualising.md)
+    add_viz_parsers(sub)  # plot, export-foxglove (docs/visualising.md)
+    for mod in {id(m): m for m in plugin_commands().values()}.values():
+        mod.add_parsers(sub)  # e.g. view (mcsm_client.view_command)
     return p
+
+
+#: entry-point group of commands other packages add to ``mcsm`` (``mcsm view``, ``mcsm ros2``)
+PLUGIN_GROUP = "mcsm.commands"
+_plugins: dict[str, Any] | None = None
+
+
+def plugin_commands() -> dict[str, Any]:
+    """Subcommand name -> module, for every module of the entry-point group ``mcsm.commands``.
+
+    Such a module has ``COMMANDS`` (names), ``add_parsers(subparsers)`` and ``run(args) ->
+    int``; it must be cheap to import (arguments only; heavy imports when it runs). This is
+    how the client package adds ``mcsm view`` while ``mcsm`` never imports ``mcsm_client``. A
+    plugin that fails to load is named on stderr and left out.
+    """
+    global _plugins
+    if _plugins is None:
+        from importlib.metadata import entry_points
+
+        found: dict[str, Any] = {}
+        for ep in sorted(entry_points(group=PLUGIN_GROUP), key=lambda e: e.name):
+            try:
+                mod = ep.load()
+                names = tuple(getattr(mod, "COMMANDS", (ep.name,)))
+                mod.add_parsers  # noqa: B018 - the protocol's two functions must exist
+                mod.run  # noqa: B018
+            except Exception as exc:  # a broken plugin must not break mcsm
+                print(f"mcsm: command {ep.name!r} ({ep.value}) could not be loaded: "
+                      f"{type(exc).__name__}: {exc}", file=sys.stderr)
+                continue
+            for n in names:
+                found.setdefault(str(n), mod)
+        _plugins = found
+    return _plugins
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -223,10 +259,13 @@ def main(argv: list[str] | None = None) -> int:
             return recover_cmd(args)
         if args.command == "cat":
             return cat_cmd(args)
-        if args.command in ("plot", "export-foxglove", "view"):
+        if args.command in ("plot", "export-foxglove"):
             from mcsm.viz.commands import run as run_viz
 
             return run_viz(args)
+        plugin = plugin_commands().get(args.command)
+        if plugin is not None:
+            return int(plugin.run(args))
         return inspect_cmd(args)
     except BrokenPipeError:  # `mcsm inspect FILE | head`: the reader went away
         import os

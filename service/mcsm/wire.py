@@ -619,6 +619,9 @@ class Event:
     digest: str | None = field(default=None, metadata=wire_field(check_str_or_nil))
     extra: dict[str, Any] = field(default_factory=dict, metadata=wire_field(
         check_map, pack=dict, required=False, omit=_is_empty))
+    request_id: str = field(default="", metadata=wire_field(
+        check_text(MAX_ID_CHARS), key="id", required=False, omit=_is_empty))
+    """The applied request's id (what ``retract``, ``reinstate`` and ``verdict`` take)."""
 
 
 # --------------------------------------------------------------------------------------------

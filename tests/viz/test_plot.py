@@ -53,15 +53,23 @@ def test_plot_map_draws_the_marginals_of_the_replayed_map(recording: Recording,
     assert res.view == "top"
     want = expected_ellipses(build_map(ops), (0, 1))
     assert set(res.ellipses) == set(want) and "x3" not in want  # x3 was removed
+    # the second component is drawn to the right of the first (a display shift along x)
+    assert res.offsets["x0"] == (0.0, 0.0, 0.0) and res.offsets["q0"][0] > 0
+    comp = {f.name: f.component for f in mv.frames}
     for name, (cx, cy, w, h) in want.items():
         e = res.ellipses[name]
-        np.testing.assert_allclose([*e.center, e.width, e.height], [cx, cy, w, h],
-                                   rtol=1e-9, atol=1e-12, err_msg=name)
+        dx = res.offsets[comp[name]][0]
+        np.testing.assert_allclose([e.center[0] - dx, e.center[1], e.width, e.height],
+                                   [cx, cy, w, h], rtol=1e-9, atol=1e-12, err_msg=name)
     assert any(e.width > 0.05 for e in res.ellipses.values())
     # one colour per component; the path runs through the pose frames in the order added
     assert set(res.colours) == {"x0", "q0"} and res.colours["x0"] != res.colours["q0"]
     assert res.paths == {"x0": ["x0", "x1", "x2", "x4", "x5", "x6", "x7", "x8"],
                          "q0": ["q0", "q1"]}
+    # one robot per component here: x2 -> x4 joins over the removed x3
+    assert res.robot_paths == {"x0": [["x0", "x1", "x2", "x4", "x5", "x6", "x7", "x8"]],
+                               "q0": [["q0", "q1"]]}
+    assert loaded.parents["x4"] == "x3" and loaded.parents["x1"] == "x0"
     assert res.n_sample_points == len(want) * 64  # N = 64 < 250: every sample is drawn
     img = matplotlib.image.imread(res.path)
     assert img.ndim == 3 and img.shape[0] > 300 and img.shape[1] > 300
@@ -184,3 +192,54 @@ def test_plot_map_opens_no_window_and_leaves_pyplot_alone(tmp_path: Path) -> Non
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "[]"
     assert (tmp_path / "w.png").stat().st_size > 0
+
+
+def two_robots(n: int, steps: int, history: bool) -> tuple[object, dict[str, str] | None]:
+    """Robots A and B drive two circles of ``steps`` poses each, B's map joined to A's by a
+    rendezvous (one component), landmarks seen by both; with ``history`` the creating updates
+    are recorded (as replay does), else the paths come from the frame names."""
+    from mcsm import StochasticMap
+    from mcsm.viz.layout import FrameHistory
+
+    from tests.viz.conftest import planar_at, planar_point
+
+    rng = np.random.default_rng(20261127)
+    m = StochasticMap(n)
+    h = FrameHistory()
+
+    def up(a: str, b: str, x: np.ndarray) -> None:
+        m.update(a, b, x)
+        h.observe("update", (a, b), m)
+
+    for k in range(steps):
+        up(f"A.x{k}", f"A.x{k + 1}", planar_at(rng, n, [1.0, 0.0], 2 * np.pi / steps,
+                                                 sigma_t=0.01, sigma_yaw=0.002))
+        up(f"B.x{k}", f"B.x{k + 1}", planar_at(rng, n, [0.8, 0.0], -2 * np.pi / steps,
+                                                 sigma_t=0.01, sigma_yaw=0.002))
+        if k % 25 == 0:
+            up(f"A.x{k + 1}", f"l{k}", planar_point(rng, n, [0.5, 2.0], sigma=0.05))
+    up("A.x0", "B.x0", planar_at(rng, n, [0.0, -5.0], 0.0, sigma_t=0.01, sigma_yaw=0.002))
+    return m, (h.parent if history else None)
+
+
+@pytest.mark.parametrize("history", [True, False])
+def test_two_robots_draw_two_paths_thinned_with_a_legend(tmp_path: Path, history: bool) -> None:
+    from mcsm.viz.plot import MAX_POSE_ELLIPSES
+
+    steps = 300  # 602 poses: every dashed ellipse drawn made a solid ring
+    m, parents = two_robots(16, steps, history)
+    mv = map_view(m, seq=1, parents=parents)  # type: ignore[arg-type]
+    assert len(mv.components) == 1
+    res = plot_map(mv, tmp_path / f"two-{history}.png")
+    (paths,) = res.robot_paths.values()
+    assert sorted(p[0] for p in paths) == ["A.x0", "B.x0"]
+    assert sorted(len(p) for p in paths) == [steps + 1, steps + 1]
+    for p in paths:  # each path is one robot's chain in order, never a zig-zag between them
+        robot = p[0].split(".")[0]
+        assert p == [f"{robot}.x{k}" for k in range(steps + 1)]
+    assert len(res.drawn_pose_ellipses) <= 2 * MAX_POSE_ELLIPSES
+    assert {"A.x0", f"A.x{steps}", "B.x0", f"B.x{steps}"} <= set(res.drawn_pose_ellipses)
+    assert res.pose_colours["A.x5"] != res.pose_colours["B.x5"]  # one colour per robot
+    assert any(s.startswith("path A.x0 \u2192 A.x300 (301 poses, ") for s in res.legend)
+    assert any(s.startswith("path B.x0 \u2192 B.x300 (301 poses, ") for s in res.legend)
+    assert any(s.startswith("component A.x0: 12 landmarks, 602 poses") for s in res.legend)

@@ -1,31 +1,26 @@
-"""The ``mcsm plot``, ``mcsm export-foxglove`` and ``mcsm view`` subcommands.
+"""The ``mcsm plot`` and ``mcsm export-foxglove`` subcommands (``mcsm view``, a client of a live
+server, comes from the client package: :mod:`mcsm_client.view_command`).
 
 Exit codes: 0 done; 2 a user's mistake or an unusable input, said in one line on stderr (missing
 or unreadable recording, unknown map, a sequence number the map never reached, bad ground-truth
-file, output path not writable, the ``viz`` extra not installed, no server answering, the
-WebSocket port taken).
+file, output path not writable, the ``viz`` extra not installed).
 """
 
 from __future__ import annotations
 
 import argparse
-import logging
 import os
-import signal
 import sys
-import threading
 from pathlib import Path
 from typing import Any
 
 from mcsm.errors import McsmError
 
-COMMANDS = ("plot", "export-foxglove", "view")
+COMMANDS = ("plot", "export-foxglove")
 
 
 def add_parsers(sub: Any) -> None:
-    """Add the three subcommands to ``mcsm``'s subparsers."""
-    from mcsm.connect import add_connection_args
-
+    """Add the subcommands to ``mcsm``'s subparsers."""
     p = sub.add_parser("plot", help="draw a recorded map (replayed) into a PNG with matplotlib",
                        description="Replay a recording and draw one map: landmarks with 95 % "
                                    "covariance ellipses, pose frames and their path, one "
@@ -62,21 +57,6 @@ def add_parsers(sub: Any) -> None:
                    help="sample points per frame in the point cloud (default 100; 0: none)")
     e.add_argument("--force", action="store_true", help="overwrite the output file")
 
-    v = sub.add_parser("view", help="serve a live map to the Foxglove app (WebSocket)",
-                       description="Follow a running mcsm serve over Zenoh and publish its "
-                                   "map as a Foxglove scene on a WebSocket; connect the "
-                                   "Foxglove app to ws://HOST:PORT.")
-    add_connection_args(v, role="client")
-    v.add_argument("--foxglove-port", type=int, default=8765, metavar="P",
-                   help="WebSocket port for the Foxglove app (default 8765; 0 picks one)")
-    v.add_argument("--foxglove-host", default="127.0.0.1", metavar="HOST",
-                   help="address to bind the WebSocket to (default 127.0.0.1)")
-    v.add_argument("--samples-per-frame", type=int, default=100, metavar="M",
-                   help="sample points per frame in the point cloud (default 100; 0: none)")
-    v.add_argument("--timeout", type=float, default=10.0, metavar="S",
-                   help="wait this long for the map server (default 10 s)")
-    v.add_argument("--log-level", default="INFO")
-
 
 def run(args: argparse.Namespace) -> int:
     """Run one of :data:`COMMANDS`; a user's mistake becomes one line on stderr and exit 2."""
@@ -84,9 +64,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         if name == "plot":
             return _plot(args)
-        if name == "export-foxglove":
-            return _export(args)
-        return _view(args)
+        return _export(args)
     except (McsmError, OSError) as exc:
         print(f"mcsm {name}: {exc}", file=sys.stderr)
         return 2
@@ -157,35 +135,3 @@ def _export(args: argparse.Namespace) -> int:
           f"open it in the Foxglove app (3D panel, display frame "
           f"mcsm@{rep.map})")
     return 0
-
-
-def _view(args: argparse.Namespace) -> int:
-    from mcsm.viz.foxglove_scene import load_foxglove
-    from mcsm.viz.live import ViewOptions, run_view
-
-    if not 0 <= args.foxglove_port <= 65535:
-        raise McsmError(f"--foxglove-port must be in 0..65535, got {args.foxglove_port}")
-    if args.samples_per_frame < 0:
-        raise McsmError("--samples-per-frame must be at least 0")
-    if not args.timeout > 0:
-        raise McsmError("--timeout must be positive")
-    logging.basicConfig(level=getattr(logging, str(args.log_level).upper(), logging.INFO),
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-                        stream=sys.stderr)
-    load_foxglove()
-    stop = threading.Event()
-
-    def on_signal(_signum: int, _frame: Any) -> None:
-        stop.set()
-
-    old = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
-    opts = ViewOptions(map=args.map, connect=args.connect, zenoh_config=args.zenoh_config,
-                       prefix=args.prefix, host=args.foxglove_host,
-                       foxglove_port=args.foxglove_port,
-                       samples_per_frame=args.samples_per_frame, timeout_s=args.timeout)
-    try:
-        return run_view(opts, stop, ready=lambda url: print(f"foxglove websocket on {url}",
-                                                            flush=True))
-    finally:
-        for sig, handler in old.items():
-            signal.signal(sig, handler)

@@ -17,7 +17,7 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -65,6 +65,8 @@ class MapView:
     components: list[str]
     frames: list[FrameView]
     notes: list[str] = field(default_factory=list)  # warnings (truncated file, divergence)
+    #: the update that created each frame, when known (:class:`mcsm.viz.layout.FrameHistory`)
+    parents: dict[str, str] | None = None
 
     @property
     def n_samples(self) -> int:
@@ -84,6 +86,41 @@ class MapView:
         """The pose (non-point) frames of one component in the order they were added."""
         return [f for f in self.of_component(root) if not f.is_point]
 
+    def paths(self, root: str) -> list[list[FrameView]]:
+        """One component's pose frames split into robot paths (:func:`mcsm.viz.layout.
+        robot_paths`: odometry chains, or name stems where the history is unknown)."""
+        from mcsm.viz.layout import robot_paths
+
+        by_name = {f.name: f for f in self.pose_path(root)}
+        return [[by_name[n] for n in path]
+                for path in robot_paths(by_name.values(), self.parents)]
+
+    def offsets(self) -> dict[str, Array]:
+        """Display shift of each component so that none overlaps another
+        (:func:`mcsm.viz.layout.component_offsets`)."""
+        from mcsm.viz.layout import component_offsets
+
+        return component_offsets(self.frames, self.components)
+
+    def shifted(self, offsets: dict[str, Array]) -> MapView:
+        """A copy with every frame's position and samples moved by its component's display
+        shift (``offsets``: root -> (3,) metres, :meth:`offsets`); covariances unchanged."""
+        frames = []
+        for f in self.frames:
+            d = offsets.get(f.component)
+            if d is None or not np.any(d):
+                frames.append(f)
+                continue
+            mean = f.mean.copy()
+            mean[:3] += d
+            smp = None
+            if f.samples is not None:
+                smp = f.samples.copy()
+                smp[:, :3] += d
+            frames.append(FrameView(f.name, f.component, f.is_point, mean, f.cov, smp))
+        return MapView(self.map, self.seq, self.options, self.components, frames,
+                       list(self.notes), self.parents)
+
     def options_text(self) -> str:
         o = self.options
         parts = [str(o.get(k)) for k in ("method", "space", "analysis") if k in o]
@@ -92,13 +129,14 @@ class MapView:
 
 
 def map_view(smap: StochasticMap, *, map_name: str = "default", seq: int = 0,
-             samples: bool = False) -> MapView:
+             samples: bool = False, parents: dict[str, str] | None = None) -> MapView:
     """A :class:`MapView` of ``smap``: every frame's marginal relative to its component root.
 
     Parameters
     ----------
     smap : the map (read only)
     samples : also copy every frame's samples ``(N, 7)`` (``smap.query(root, frame)``)
+    parents : the update that created each frame, if known (robot paths follow it)
     """
     roots = smap.components()
     root_of = {f: r for r in roots for f in smap.component(r)}
@@ -110,7 +148,8 @@ def map_view(smap: StochasticMap, *, map_name: str = "default", seq: int = 0,
                                 np.asarray(mean, dtype=np.float64),
                                 np.asarray(cov, dtype=np.float64),
                                 smap.query(root, name) if samples else None))
-    return MapView(map_name, int(seq), dict(smap.options()), list(roots), frames)
+    return MapView(map_name, int(seq), dict(smap.options()), list(roots), frames,
+                   parents=dict(parents) if parents is not None else None)
 
 
 def is_planar(view: MapView, rel_tol: float = 1e-9) -> bool:
@@ -142,6 +181,49 @@ class LoadedMap:
     seq: int
     last_seq: int  # the map's last sequence number in the file
     notes: list[str]
+    parents: dict[str, str] = field(default_factory=dict)  # creating updates (robot paths)
+
+
+class ReplaySink:
+    """Passed to ``mcsm.recording.replay`` as its ``sink``: replay calls ``config`` with each
+    map's live state, ``input`` after applying each input, ``snapshot`` when it starts from
+    (or verifies) a state snapshot. This one follows one map and records the update that
+    created each of its frames (:class:`mcsm.viz.layout.FrameHistory`); subclasses draw."""
+
+    def __init__(self, map_name: str) -> None:
+        from mcsm.viz.layout import FrameHistory
+
+        self.map_name = map_name
+        self.state: Any = None
+        self.history = FrameHistory()
+        self.last_frames: tuple[str, ...] = ()  # what the last input named
+
+    def config(self, state: Any, *_args: Any, **_kw: Any) -> None:
+        if state.name == self.map_name:
+            self.state = state
+
+    def input(self, op: str, map_name: str, seq: int, recv_ns: int, _sender: str = "",
+              _request_id: str = "", request: bytes = b"") -> None:
+        if map_name != self.map_name or self.state is None:
+            return
+        try:
+            self.last_frames = self.history.observe_request(op, request, self.state.map)
+        except McsmError:
+            self.last_frames = ()
+            self.history.reset(self.state.map)  # unreadable: paths fall back to names
+        self.on_input(op, seq, recv_ns, _request_id)
+
+    def on_input(self, op: str, seq: int, recv_ns: int, request_id: str) -> None:
+        """Called after each input of the map (for subclasses)."""
+
+    def checkpoint(self, *_args: Any, **_kw: Any) -> None:
+        return None
+
+    def snapshot(self, state: Any, *_args: Any, **_kw: Any) -> None:
+        # replay started from (or verified) a state snapshot: a start from one loses the
+        # history before it; a verified one changes nothing
+        if state.name == self.map_name and not self.history.parent and state.seq:
+            self.history.reset(state.map)
 
 
 def recording_maps(path: str | os.PathLike[str]) -> dict[str, list[int]]:
@@ -207,7 +289,8 @@ def load_map(path: str | os.PathLike[str], map_name: str | None = None,
                             f"not {at_seq}")
         # every input of every map up to this map's input number at_seq
         stop_after = counts[name][at_seq - 1]
-    rep = replay(path, stop_after=stop_after)
+    sink = ReplaySink(name)
+    rep = replay(path, stop_after=stop_after, sink=cast(Any, sink))
     notes = []
     if rep.divergence is not None:
         notes.append(f"replay diverged from the recording; showing the map as replayed up to "
@@ -217,7 +300,7 @@ def load_map(path: str | os.PathLike[str], map_name: str | None = None,
     st = rep.states.get(name)
     if st is None:
         raise McsmError(f"{path}: map {name!r} has no config record before seq {at_seq}")
-    return LoadedMap(st.map, name, st.seq, last_seq, notes)
+    return LoadedMap(st.map, name, st.seq, last_seq, notes, dict(sink.history.parent))
 
 
 def read_truth(path: str | os.PathLike[str]) -> dict[str, Array]:
