@@ -187,3 +187,23 @@ def test_export_of_a_recording_with_state_snapshots(tmp_path: Path) -> None:
     rep = export_foxglove(path, tmp_path / "scene.mcap", every=2)
     assert (tmp_path / "scene.mcap").stat().st_size > 0
     assert rep is not None
+
+
+def test_shipped_layout_matches_the_topics_the_view_and_export_write() -> None:
+    """docs/foxglove-layout.json is ``foxglove_layout('default')``: its 3D panel follows the
+    display frame, shows the scene and samples, its Log panel reads the verdicts and its Plot
+    panel the counters, all topics and fields that exist."""
+    from mcsm.viz.foxglove_scene import STATS_FIELDS, display_frame, foxglove_layout, topics
+
+    shipped = json.loads((Path(__file__).parents[2] / "docs" / "foxglove-layout.json")
+                         .read_text())
+    assert shipped == foxglove_layout("default")
+    cfg, t = shipped["configById"], topics("default")
+    assert cfg["3D!mcsm"]["followTf"] == display_frame("default")
+    assert set(cfg["3D!mcsm"]["topics"]) == {t["scene"], t["samples"]}
+    assert cfg["RosOut!mcsm"]["topicToRender"] == t["log"]
+    for p in cfg["Plot!mcsm"]["paths"]:
+        topic, fieldname = p["value"].split(".")
+        assert topic == t["stats"] and fieldname in STATS_FIELDS
+    panels = json.dumps(shipped["layout"])
+    assert all(f'"{k}"' in panels for k in cfg)  # every configured panel is placed

@@ -246,6 +246,43 @@ def log_message(map_name: str, time_ns: int, level: str, text: str) -> Any:
                  name=f"mcsm/{map_name}", file="", line=0)
 
 
+def foxglove_layout(map_name: str = "default") -> dict[str, Any]:
+    """A Foxglove / Lichtblick layout (the apps' "Import from file" JSON) for one map's topics:
+    a 3D panel in the display frame with the scene and the samples, a Log panel on the
+    verdicts, and a Plot panel of the counters. ``docs/foxglove-layout.json`` is this for the
+    map ``default`` (a test keeps the two equal)."""
+    t = topics(map_name)
+    plot = [{"value": f"{t['stats']}.{k}", "enabled": True, "timestampMethod": "receiveTime",
+             "label": k} for k in ("accepted", "rejected", "pending", "queue_length")]
+    return {
+        "configById": {
+            "3D!mcsm": {
+                "followTf": display_frame(map_name), "followMode": "follow-none",
+                "scene": {"transforms": {"showLabel": False}},
+                "cameraState": {"perspective": False, "distance": 80, "phi": 0.0001,
+                                "thetaOffset": 0, "target": [0, 0, 0],
+                                "targetOffset": [0, 0, 0], "targetOrientation": [0, 0, 0, 1],
+                                "fovy": 45, "near": 0.01, "far": 5000},
+                "topics": {t["scene"]: {"visible": True},
+                           t["samples"]: {"visible": True, "pointSize": 2,
+                                          "colorField": "component", "colorMode": "colormap",
+                                          "colorMap": "turbo"}},
+                "layers": {"grid": {"layerId": "foxglove.Grid", "visible": True,
+                                    "frameId": display_frame(map_name), "size": 100,
+                                    "divisions": 20, "color": "#80808040"}},
+                "transforms": {}},
+            "RosOut!mcsm": {"topicToRender": t["log"], "minLogLevel": 1, "searchTerms": []},
+            "Plot!mcsm": {"title": f"map {map_name}: verdicts and queue", "paths": plot,
+                          "showLegend": True, "xAxisVal": "timestamp", "isSynced": True},
+        },
+        "globalVariables": {}, "userNodes": {}, "playbackConfig": {"speed": 1},
+        "layout": {"direction": "row", "first": "3D!mcsm",
+                   "second": {"direction": "column", "first": "RosOut!mcsm",
+                              "second": "Plot!mcsm", "splitPercentage": 55},
+                   "splitPercentage": 65},
+    }
+
+
 class SceneChannels:
     """The five channels of one map's scene in a foxglove ``Context`` (file or server)."""
 
