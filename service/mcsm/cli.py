@@ -202,7 +202,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     from mcsm.viz.commands import add_parsers as add_viz_parsers
 
-    add_viz_parsers(sub)  # plot, export-foxglove (docs/visualising.md)
+    add_viz_parsers(sub)  # plot, export FORMAT, export-foxglove (docs/visualising.md)
     for mod in {id(m): m for m in plugin_commands().values()}.values():
         mod.add_parsers(sub)  # e.g. view (mcsm_client.view_command)
     return p
@@ -259,7 +259,7 @@ def main(argv: list[str] | None = None) -> int:
             return recover_cmd(args)
         if args.command == "cat":
             return cat_cmd(args)
-        if args.command in ("plot", "export-foxglove"):
+        if args.command in ("plot", "export", "export-foxglove"):
             from mcsm.viz.commands import run as run_viz
 
             return run_viz(args)
