@@ -390,4 +390,5 @@ def write_tum(data: Collected, prefix: str | os.PathLike[str]) -> list[Trajector
 
 
 __all__ = ["Collected", "Constraint", "G2oReport", "Trajectory", "body_frame_cov", "collect",
-           "information", "write_g2o", "frames_file", "write_tum", "tum_paths", "robot_name", "MIN_VARIANCE"]
+           "information", "write_g2o", "frames_file", "write_tum", "tum_paths", "robot_name",
+           "MIN_VARIANCE"]
