@@ -449,7 +449,10 @@ def _input_file(cmd: str, path: Path) -> str | None:
             pass
     except OSError as exc:
         return f"mcsm {cmd}: {path}: cannot open: {exc.strerror or exc}"
-    return None
+    from mcsm.filetype import not_a_recording
+
+    why = not_a_recording(path)  # e.g. a Foxglove scene: not damaged, not ours
+    return f"mcsm {cmd}: {path}: {why}" if why else None
 
 
 def _output_file(cmd: str, path: Path) -> str | None:

@@ -207,3 +207,25 @@ def test_shipped_layout_matches_the_topics_the_view_and_export_write() -> None:
         assert topic == t["stats"] and fieldname in STATS_FIELDS
     panels = json.dumps(shipped["layout"])
     assert all(f'"{k}"' in panels for k in cfg)  # every configured panel is placed
+
+
+def test_commands_given_a_foxglove_export_say_not_an_mcsm_recording(
+        recording: Recording, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """mcsm's own Foxglove scene is MCAP but not a recording: every command reading
+    recordings says so in one line and exits 2 (replay said DAMAGED, exit 5; recover said
+    "complete" and wrote an empty copy)."""
+    scene = tmp_path / "scene.mcap"
+    assert cli.main(["export", "foxglove", str(recording.path), "-o", str(scene),
+                     "--samples-per-frame", "0"]) == 0
+    capsys.readouterr()
+    out = tmp_path / "copy.mcap"
+    for argv in (["replay", str(scene)], ["inspect", str(scene)], ["cat", str(scene)],
+                 ["recover", str(scene), "-o", str(out)], ["plot", str(scene), "-o",
+                                                           str(tmp_path / "p.png")],
+                 ["export", "g2o", str(scene), "-o", str(tmp_path / "m.g2o")]):
+        assert cli.main(argv) == 2, argv
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+        assert f"{scene}: not an mcsm recording (its first message is on /mcsm/default/" in err
+    assert not out.exists()
+    assert cli.main(["replay", str(recording.path)]) == 0  # a recording still is one

@@ -111,8 +111,13 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _check_input(path: Path) -> None:
+    from mcsm.filetype import not_a_recording
+
     if not path.is_file():
         raise McsmError(f"no such recording: {path}")
+    why = not_a_recording(path)
+    if why:
+        raise McsmError(f"{path}: {why}")
 
 
 def _check_output(path: Path, overwrite: bool = False) -> None:
