@@ -81,7 +81,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     so = ServerOptions()
     mo = StochasticMap(2).options()
-    s = sub.add_parser("serve", help="run the map server (embedded Zenoh peer)")
+    s = sub.add_parser("serve", help="run the map server (embedded Zenoh peer)",
+                       description=_para("Run the map server: an embedded Zenoh peer that "
+                                         "serves maps, applies updates in one order, records "
+                                         "every input to MCAP before it acknowledges it, and "
+                                         "answers queries. Prints 'listening on ENDPOINT' "
+                                         "when ready; SIGINT/SIGTERM close the recording."),
+                       epilog=EXIT_CODES_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_connection_args(s, role="server")
     s.add_argument("--connect", action="append", default=None, metavar="ENDPOINT",
                    help="join a Zenoh router (repeatable; mcsm router): clients then find "
@@ -89,7 +95,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "--listen the server listens nowhere itself")
 
     rt = sub.add_parser("router", help="run a Zenoh router that servers and clients join "
-                        "(several servers, one key space)")
+                        "(several servers, one key space)",
+                        description="Run a Zenoh router (no map of its own) that map servers "
+                                    "(mcsm serve --connect) and clients join: several servers, "
+                                    "one key space (docs/fleet.md).")
     rt.add_argument("--listen", required=True, metavar="ENDPOINT",
                     help="endpoint to listen on, e.g. tcp/0.0.0.0:7447")
     rt.add_argument("--zenoh-config", default=None, metavar="FILE",
@@ -173,6 +182,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     raw = argparse.RawDescriptionHelpFormatter
     r = sub.add_parser("replay", help="rebuild the maps of a recording and check its digests",
+                       description=_para("Rebuild every map of a recording with the server's own "
+                                   "code and compare the map's digest at every checkpoint "
+                                   "and snapshot: 'identical' (exit 0), or what differs, where "
+                                   "the file is cut or damaged, or that another arithmetic "
+                                   "version made it (docs/recordings.md)."),
                        epilog=EXIT_CODES_HELP, formatter_class=raw)
     r.add_argument("file", type=Path, help="the recording (complete, cut or damaged)")
     r.add_argument("--json", action="store_true", help="print the result as one JSON line")
@@ -180,13 +194,22 @@ def build_parser() -> argparse.ArgumentParser:
                    help="no progress bar (terminal) or progress lines (log)")
 
     i = sub.add_parser("inspect", help="summarise a recording and verify its CRCs",
+                       description=_para("Check every CRC of a recording (chunks, data section, "
+                                   "summary) and list its maps: options, operations, frames "
+                                   "named, senders, checkpoints, the arithmetic version and "
+                                   "the size per input; nothing is replayed."),
                        epilog=EXIT_CODES_HELP, formatter_class=raw)
-    i.add_argument("file", type=Path)
-    i.add_argument("--json", action="store_true")
+    i.add_argument("file", type=Path, help="the recording (complete, cut or damaged)")
+    i.add_argument("--json", action="store_true",
+                   help="print everything as one JSON object (every checkpoint)")
 
     v = sub.add_parser("recover", help="write a clean, indexed copy of every complete record "
-                       "of a cut or damaged recording", epilog=EXIT_CODES_HELP,
-                       formatter_class=raw)
+                       "of a cut or damaged recording",
+                       description=_para("Copy every complete record of a cut (SIGKILL, full disk) "
+                                   "or damaged (bit rot) recording into a new chunked, indexed "
+                                   "file that every MCAP reader opens; intact chunks after "
+                                   "damage are copied too. Never overwrites a file."),
+                       epilog=EXIT_CODES_HELP, formatter_class=raw)
     v.add_argument("file", type=Path, metavar="IN", help="the cut or damaged recording")
     v.add_argument("-o", "--output", type=Path, required=True, metavar="OUT",
                    help="the new file (refused if it exists)")
@@ -194,8 +217,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="no progress bar (terminal) or progress lines (log)")
 
     c = sub.add_parser("cat", help="print the inputs of a recording, one per line",
+                       description=_para("Print every recorded input, one per line: map, seq, "
+                                   "operation, frames, sender and request id, and each AT as "
+                                   "its sample count, mean and covariance (or every sample)."),
                        epilog=EXIT_CODES_HELP, formatter_class=raw)
-    c.add_argument("file", type=Path)
+    c.add_argument("file", type=Path, help="the recording (complete, cut or damaged)")
     c.add_argument("--json", action="store_true", help="one JSON object per line")
     c.add_argument("--samples", action="store_true",
                    help="print every sample (default: the mean and covariance of each AT)")
@@ -240,6 +266,13 @@ def plugin_commands() -> dict[str, Any]:
                 found.setdefault(str(n), mod)
         _plugins = found
     return _plugins
+
+
+def _para(text: str) -> str:
+    """A description wrapped for the raw help formatter (which keeps the exit-code table)."""
+    import textwrap
+
+    return textwrap.fill(text, 79)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -670,7 +703,9 @@ def inspect_cmd(args: argparse.Namespace) -> int:
         print(f"  frames named in inputs: {len(m['frames'])}")
         print(f"  senders: {len(m['senders'])}")
         cps = m["checkpoints"]
-        print(f"  checkpoints: {len(cps)}")
+        shown = (f" (the first 3 and the last 2 of {len(cps)} listed; --json lists all)"
+                 if len(cps) > 5 else "")
+        print(f"  checkpoints: {len(cps)}{shown}")
         for seq, dig, why_cp in cps[:3] + (cps[-2:] if len(cps) > 5 else cps[3:]):
             print(f"    seq {seq:>7} {why_cp:<8} {dig}")
     return code

@@ -155,7 +155,8 @@ def _plot(args: argparse.Namespace) -> int:
               f"(e.g. {res.truth_missing[0]})", file=sys.stderr)
     n_comp = len(mv.components)
     print(f"{args.output}: map {loaded.name!r} at seq {loaded.seq} of {loaded.last_seq}, "
-          f"{len(mv.frames)} frames, {n_comp} component{'' if n_comp == 1 else 's'}, "
+          f"{len(mv.frames)} frame{'' if len(mv.frames) == 1 else 's'}, "
+          f"{n_comp} component{'' if n_comp == 1 else 's'}, "
           f"view {res.view}")
     return 0
 

@@ -71,8 +71,10 @@ def resolve_view(view: str, mv: MapView) -> str:
 
 def title_of(mv: MapView, view: str, extra: str = "") -> str:
     n_points = sum(f.is_point for f in mv.frames)
-    first = (f"map {mv.map!r} at seq {mv.seq}: {len(mv.frames)} frames ({n_points} landmarks, "
-             f"{len(mv.frames) - n_points} poses), {len(mv.components)} component"
+    n_poses, n_frames = len(mv.frames) - n_points, len(mv.frames)
+    first = (f"map {mv.map!r} at seq {mv.seq}: {n_frames} frame{'' if n_frames == 1 else 's'} "
+             f"({n_points} landmark{'' if n_points == 1 else 's'}, {n_poses} "
+             f"pose{'' if n_poses == 1 else 's'}), {len(mv.components)} component"
              f"{'s' if len(mv.components) != 1 else ''}")
     second = f"N={mv.n_samples}, {mv.options_text()}; view {view}, {int(P_REGION * 100)} % regions"
     return first + "\n" + second + (f"\n{extra}" if extra else "")
