@@ -54,6 +54,8 @@ from mcsm.viz.scene import MapView, ReplaySink, map_view
 DEFAULT_SAMPLES_PER_FRAME = 100
 #: snapshots of an export without ``every``: K = ceil(operations / 100)
 MAX_AUTO_SNAPSHOTS = 100
+#: points of each region's outline (a closed line loop)
+OUTLINE_POINTS = 20
 #: pose labels along one path at most (the path's ends always)
 MAX_POSE_LABELS = 30
 #: the counters of ``/mcsm/<map>/stats`` (JSON schema ``mcsm.MapStats``)
@@ -140,7 +142,7 @@ def build_snapshot(mv: MapView, time_ns: int, *, samples_per_frame: int =
                                                    z=e.quat_xyzw[2], w=e.quat_xyzw[3]))
             sphere = m.SpherePrimitive(pose=pose, size=m.Vector3(x=sx, y=sy, z=sz),
                                        color=_colour(m, rgb, 0.5 if f.is_point else 0.3))
-            ring = e.outline(32)
+            ring = e.outline(OUTLINE_POINTS)
             outline = m.LinePrimitive(
                 type=m.LinePrimitiveLineType.LineLoop, thickness=1.5, scale_invariant=True,
                 points=[m.Point3(x=float(x), y=float(y), z=float(z)) for x, y, z in ring],

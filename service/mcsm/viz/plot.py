@@ -195,8 +195,8 @@ def plot_map(mv: MapView, out: str | os.PathLike[str], *, view: str = "auto",
                           + (f", {len(shown)} ellipses" if len(shown) < len(path) else "")
                           + ")"))
             named = path if len(path) <= MAX_LABELS else [path[0], path[-1]]
-            for f in named:
-                _label(ax, v, f.position, f.name, pcol)
+            for f in named:  # a path's last pose is labelled below it (loops end at the start)
+                _label(ax, v, f.position, f.name, pcol, below=f is path[-1] and len(path) > 1)
         if len(pts) <= MAX_LABELS:
             for f in pts:
                 _label(ax, v, f.position, f.name, col, small=True)
@@ -259,14 +259,16 @@ def plot_map(mv: MapView, out: str | os.PathLike[str], *, view: str = "auto",
     return res
 
 
-def _label(ax: Any, v: str, p: Array, text: str, col: Any, small: bool = False) -> None:
+def _label(ax: Any, v: str, p: Array, text: str, col: Any, small: bool = False,
+           below: bool = False) -> None:
     size = 6 if small else 7
     if v == "3d":
-        ax.text(p[0], p[1], p[2], f" {text}", fontsize=size, color=col)
+        ax.text(p[0], p[1], p[2], f" {text}", fontsize=size, color=col,
+                va="top" if below else "bottom")
     else:
         i, j = _AXES[v]
-        ax.annotate(text, (p[i], p[j]), xytext=(3, 3), textcoords="offset points",
-                    fontsize=size, color=col, zorder=6)
+        ax.annotate(text, (p[i], p[j]), xytext=(3, -9 if below else 3),
+                    textcoords="offset points", fontsize=size, color=col, zorder=6)
 
 
 def _wireframe(ax: Any, e: Ellipsoid, col: Any, alpha: float) -> None:
