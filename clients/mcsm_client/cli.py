@@ -114,6 +114,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("b")
     s.add_argument("--samples-out", type=Path, default=None, metavar="FILE.npy",
                    help="also save the (N, 7) samples as a .npy file")
+    s.add_argument("--force", action="store_true", help="overwrite an existing --samples-out")
     s.add_argument("--json", action="store_true")
     _add_common(s)
 
@@ -193,6 +194,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--unbounded", action="store_true", help="keep every pose frame")
     s.add_argument("--csv", type=Path, default=None, help="write per-iteration scores here")
     s.add_argument("--png", type=Path, default=None, help="plot here (needs matplotlib)")
+    s.add_argument("--force", action="store_true", help="overwrite existing --csv/--png files")
     s.add_argument("--json", action="store_true")
     _add_in_process(s)
     _add_common(s)
@@ -289,10 +291,13 @@ def _version_text() -> str:
             f"protocol v{VERSION})")
 
 
-def _check_output(path: Path | None, flag: str) -> None:
-    """Refuse an output file that cannot be written, before any long run starts."""
+def _check_output(path: Path | None, flag: str, force: bool = False) -> None:
+    """Refuse an output file that cannot be written, or that exists without ``--force`` (as
+    every writer of ``mcsm`` and ``mcsm-client`` does), before any long run starts."""
     if path is None:
         return
+    if path.is_file() and not force:
+        raise UsageError(f"{flag} {path}: exists (--force overwrites it)")
     parent = path.parent if str(path.parent) else Path(".")
     if path.is_dir():
         raise UsageError(f"{flag} {path}: is a directory")
@@ -411,6 +416,12 @@ def cmd_update(args: argparse.Namespace) -> int:
 
 def cmd_query(args: argparse.Namespace) -> int:
     """``query``: print the marginal of A->B; optionally save its samples."""
+    if args.samples_out is not None:
+        if not str(args.samples_out).endswith(".npy"):
+            args.samples_out = Path(f"{args.samples_out}.npy")  # what np.save writes
+        if args.samples_out.exists() and not args.force:
+            raise UsageError(f"--samples-out {args.samples_out}: exists (--force overwrites "
+                             "it)")
     with _client(args) as c:
         mean, cov = c.marginal(args.a, args.b)
         if args.samples_out is not None:
@@ -652,8 +663,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
     if args.iterations < 1 or args.score_every < 1 or args.landmarks < 1:
         raise UsageError("--iterations, --score-every and --landmarks must be >= 1")
-    _check_output(args.csv, "--csv")  # before the run, not after it
-    _check_output(args.png, "--png")
+    _check_output(args.csv, "--csv", args.force)  # before the run, not after it
+    _check_output(args.png, "--png", args.force)
     if args.png is not None and importlib.util.find_spec("matplotlib") is None:
         raise UsageError("--png needs matplotlib (pip install -e '.[eval]')")
     cfg = SimConfig(n_iterations=args.iterations, sigma_theta_deg=args.sigma_theta_deg,

@@ -88,6 +88,13 @@ def test_cli_commands_and_exit_codes(server: ServerProcess, tmp_path: Path,
     got = json.loads(out)
     assert code == 0 and abs(got["mean"][0] - 1.0) < 0.1
     assert np.load(tmp_path / "s.npy").shape == (N, 7)
+    # like every writer, --samples-out refuses an existing file without --force
+    code, _, err = _cli(capsys, "query", "w", "r", "--samples-out", str(tmp_path / "s.npy"),
+                        *conn)
+    assert code == 2 and "exists (--force overwrites it)" in err
+    code, _, _ = _cli(capsys, "query", "w", "r", "--samples-out", str(tmp_path / "s"),
+                      "--force", *conn)  # np.save's own suffix: the same file
+    assert code == 0
     code, out, _ = _cli(capsys, "info", "--json", *conn)
     info = json.loads(out)
     assert code == 0 and info["n_samples"] == N and info["n_frames"] == 3
