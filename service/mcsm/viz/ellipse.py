@@ -125,6 +125,17 @@ class Ellipsoid:
         return np.asarray(u @ self.rotation().T + np.asarray(self.center), dtype=np.float64)
 
 
+def _spread(cov: npt.ArrayLike) -> tuple[Array, Array, int]:
+    """Eigenvalues (ascending; round-off negatives and those at most ``RANK_TOL`` of the
+    largest set to 0), eigenvectors, and the rank (:func:`spread_rank`) of a covariance."""
+    c = np.asarray(cov, dtype=np.float64)
+    lam, vec = np.linalg.eigh(0.5 * (c + c.T))
+    lam = np.clip(lam, 0.0, None)
+    dof = spread_rank(lam)
+    lam = np.where(lam > RANK_TOL * float(lam.max(initial=0.0)), lam, 0.0)
+    return lam, vec, dof
+
+
 def ellipse(mean2: npt.ArrayLike, cov2: npt.ArrayLike, p: float = P_REGION) -> Ellipse:
     """The ``p`` confidence ellipse of a 2-D Gaussian (``width`` along the major axis).
 
@@ -135,12 +146,8 @@ def ellipse(mean2: npt.ArrayLike, cov2: npt.ArrayLike, p: float = P_REGION) -> E
     mean2 : (2,) float64, metres
     cov2 : (2, 2) float64, m²; negative eigenvalues from round-off count as 0
     """
-    c = np.asarray(cov2, dtype=np.float64)
-    lam, vec = np.linalg.eigh(0.5 * (c + c.T))
-    lam = np.clip(lam, 0.0, None)
-    dof = min(2, spread_rank(lam))
+    lam, vec, dof = _spread(cov2)
     k = chi2_quantile(p, dof)
-    lam = np.where(lam > RANK_TOL * float(lam.max(initial=0.0)), lam, 0.0)
     major = vec[:, 1]
     m = np.asarray(mean2, dtype=np.float64)
     return Ellipse((float(m[0]), float(m[1])), float(2.0 * math.sqrt(k * lam[1])),
@@ -184,11 +191,7 @@ def ellipsoid(mean3: npt.ArrayLike, cov3: npt.ArrayLike, p: float = P_REGION) ->
     mean3 : (3,) float64, metres
     cov3 : (3, 3) float64, m²; negative eigenvalues from round-off count as 0
     """
-    c = np.asarray(cov3, dtype=np.float64)
-    lam, vec = np.linalg.eigh(0.5 * (c + c.T))
-    lam = np.clip(lam, 0.0, None)
-    dof = spread_rank(lam)
-    lam = np.where(lam > RANK_TOL * float(lam.max(initial=0.0)), lam, 0.0)
+    lam, vec, dof = _spread(cov3)
     if np.linalg.det(vec) < 0:
         vec[:, 0] = -vec[:, 0]
     k = chi2_quantile(p, dof)
