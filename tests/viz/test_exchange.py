@@ -226,36 +226,36 @@ def truth_recording(path: Path, n: int = 32) -> dict[str, list[tuple[int, np.nda
     return truth
 
 
-def test_tum_trajectories_per_robot_and_evo_ape_reads_them(tmp_path: Path) -> None:
+def test_tum_trajectories_per_robot_and_evo_ape_reads_them(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     truth = truth_recording(tmp_path / "rec.mcap")
     prefix = tmp_path / "traj"
-    p = subprocess.run([sys.executable, "-m", "mcsm.cli", "export", "tum",
-                        str(tmp_path / "rec.mcap"), "-o", str(prefix)], capture_output=True,
-                       text=True, timeout=120)
-    assert p.returncode == 0, p.stderr
+    assert cli.main(["export", "tum", str(tmp_path / "rec.mcap"), "-o", str(prefix)]) == 0
+    out = capsys.readouterr().out
     # the roots A.x0, B.x0 are made by the update that makes x1: no time of their own
     assert (f"{prefix}-A.x.tum: robot A.x, 12 poses (A.x1 .. A.x12); left out, sharing a "
-            "time with the next pose: A.x0") in p.stdout
-    assert f"{prefix}-B.x.tum: robot B.x, 12 poses (B.x1 .. B.x12); left" in p.stdout
-    env = dict(os.environ, HOME=str(tmp_path), MPLBACKEND="Agg")  # evo keeps settings in ~
-    evo_ape = Path(sys.executable).with_name("evo_ape")
+            "time with the next pose: A.x0") in out
+    assert f"{prefix}-B.x.tum: robot B.x, 12 poses (B.x1 .. B.x12); left" in out
+    rmse = {}
     for robot, poses in truth.items():
         est = np.loadtxt(f"{prefix}-{robot}.tum")
-        ref = tmp_path / f"truth-{robot}.tum"
-        np.savetxt(ref, [[t / 1e9, *v] for t, v in poses], fmt="%.9f")
-        # the pose times are the updates' stamps
-        np.testing.assert_array_equal(est[:, 0], [t / 1e9 for t, _ in poses[1:]])
+        assert est.shape == (12, 8)
+        np.testing.assert_array_equal(est[:, 0], [t / 1e9 for t, _ in poses[1:]])  # stamps
         err = np.linalg.norm(est[:, 1:4] - np.array([v[:3] for _, v in poses[1:]]), axis=1)
-        rmse = float(np.sqrt(np.mean(err**2)))
-        r = subprocess.run([str(evo_ape), "tum", str(ref), f"{prefix}-{robot}.tum",
-                            "--pose_relation", "trans_part", "--no_warnings"],
-                           capture_output=True, text=True, timeout=120, env=env)
-        assert r.returncode == 0, r.stdout + r.stderr
-        stat = dict(re.findall(r"^\s*(rmse|sse)\s+([0-9.e+-]+)$", r.stdout, re.M))
-        assert float(stat["rmse"]) == pytest.approx(rmse, abs=1e-6), r.stdout  # 6 digits
-        assert float(stat["sse"]) / float(stat["rmse"]) ** 2 == pytest.approx(12, rel=1e-3)
-        assert 0 < rmse < 0.2  # small odometry noise over 12 m
-    p = subprocess.run([sys.executable, "-m", "mcsm.cli", "export", "tum",
-                        str(tmp_path / "rec.mcap"), "-o", str(prefix)], capture_output=True,
-                       text=True, timeout=120)
-    assert p.returncode == 2 and "exists (--force overwrites it)" in p.stderr
+        rmse[robot] = float(np.sqrt(np.mean(err**2)))
+        assert 0 < rmse[robot] < 0.2  # small odometry noise over 12 m
+        np.testing.assert_allclose(np.linalg.norm(est[:, 4:], axis=1), 1.0, atol=1e-12)
+    # evo's own reader and metric agree (one robot: evo takes a second to start)
+    ref = tmp_path / "truth-A.x.tum"
+    np.savetxt(ref, [[t / 1e9, *v] for t, v in truth["A.x"]], fmt="%.9f")
+    env = dict(os.environ, HOME=str(tmp_path), MPLBACKEND="Agg")  # evo keeps settings in ~
+    evo_ape = Path(sys.executable).with_name("evo_ape")
+    r = subprocess.run([str(evo_ape), "tum", str(ref), f"{prefix}-A.x.tum", "--pose_relation",
+                        "trans_part", "--no_warnings"], capture_output=True, text=True,
+                       timeout=120, env=env)
+    assert r.returncode == 0, r.stdout + r.stderr
+    stat = dict(re.findall(r"^\s*(rmse|sse)\s+([0-9.e+-]+)$", r.stdout, re.M))
+    assert float(stat["rmse"]) == pytest.approx(rmse["A.x"], abs=1e-6), r.stdout  # 6 digits
+    assert float(stat["sse"]) / float(stat["rmse"]) ** 2 == pytest.approx(12, rel=1e-3)
+    assert cli.main(["export", "tum", str(tmp_path / "rec.mcap"), "-o", str(prefix)]) == 2
+    assert "exists (--force overwrites it)" in capsys.readouterr().err

@@ -110,26 +110,35 @@ def frame_ids(scene: Any) -> set[str]:
     return {e.id[len("frame/"):] for e in scene.entities if e.id.startswith("frame/")}
 
 
+NPM_PACKAGES = ("@foxglove/ws-protocol@0.8", "ws@8")
+
+
 @pytest.fixture(scope="session")
-def node_modules(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """``@foxglove/ws-protocol`` and ``ws`` installed with npm (from its cache when it has
-    them); the test is skipped only when node or npm is missing."""
+def node_modules(request: pytest.FixtureRequest,
+                 tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``@foxglove/ws-protocol`` and ``ws`` installed with npm into pytest's cache folder
+    (once; later runs reuse it), or a temporary folder without pytest's cache; the test is
+    skipped only when node or npm is missing."""
     node, npm = shutil.which("node"), shutil.which("npm")
     if node is None or npm is None:
         pytest.skip("node and npm are needed to run npm's @foxglove/ws-protocol client "
                     f"(node: {node}, npm: {npm})")
-    where = tmp_path_factory.mktemp("npm")
-    p = subprocess.run([npm, "install", "--no-audit", "--no-fund", "--prefer-offline",
-                        "--prefix", str(where), "@foxglove/ws-protocol@0.8", "ws@8"],
-                       capture_output=True, text=True, timeout=300)
-    assert p.returncode == 0, p.stdout + p.stderr
-    return where / "node_modules"
+    cache = getattr(request.config, "cache", None)
+    where = (cache.mkdir("npm-" + "-".join(NPM_PACKAGES).replace("/", "_").replace("@", ""))
+             if cache is not None else tmp_path_factory.mktemp("npm"))
+    if not (where / "node_modules" / "@foxglove" / "ws-protocol" / "package.json").is_file():
+        p = subprocess.run([npm, "install", "--no-audit", "--no-fund", "--prefer-offline",
+                            "--prefix", str(where), *NPM_PACKAGES],
+                           capture_output=True, text=True, timeout=300)
+        assert p.returncode == 0, p.stdout + p.stderr
+    return Path(where) / "node_modules"
 
 
 async def python_viewer(url: str, subprotocol: str, c: Any, rng: np.random.Generator,
-                        ops: list[Any]) -> list[Any]:
-    """Connect offering only ``subprotocol``; check the scene against the map, then send one
-    more update and wait for it in the scene, the verdict log and the counters."""
+                        ops: list[Any], change: bool = True) -> list[Any]:
+    """Connect offering only ``subprotocol``; check the scene against the map, then (with
+    ``change``) send one more update and wait for it in the scene, the verdict log and the
+    counters."""
     topic = "/mcsm/default/scene"
     async with websockets.connect(url, subprotocols=[subprotocol], max_size=None) as ws:
         assert ws.subprotocol == subprotocol
@@ -152,6 +161,8 @@ async def python_viewer(url: str, subprotocol: str, c: Any, rng: np.random.Gener
         want = set(m.frames())  # type: ignore[attr-defined]
         scene = await fc.next_message(7, cls, lambda s: frame_ids(s) == want)
         check_scene_against_map(scene, m)
+        if not change:
+            return ops
         # the map changes: a new landmark shows up in the scene, its verdict in the log,
         # the counters move
         await fc.subscribe(8, "/mcsm/default/log")
@@ -241,7 +252,7 @@ def test_live_view_serves_the_changing_map_to_every_foxglove_client(
             for op in ops:
                 apply(c, op)
             view, url = start_view(tmp_path, d.endpoint, free_port())
-            ops = asyncio.run(python_viewer(url, SUBPROTOCOL, c, rng, ops))
+            ops = asyncio.run(python_viewer(url, SUBPROTOCOL, c, rng, ops, change=False))
             ops = asyncio.run(python_viewer(url, OLD_SUBPROTOCOL, c, rng, ops))
             node_viewer(url, node_modules, ops, tmp_path)
             # a map nobody serves, and the WebSocket port already taken: one line, exit 2
