@@ -13,8 +13,10 @@
     mcsm cat FILE.mcap [--json] [--samples]
     mcsm plot FILE.mcap -o map.png [--map NAME] [--at SEQ] [--samples] [--truth CSV]
               [--view auto|top|xz|yz|3d]
-    mcsm export-foxglove FILE.mcap -o scene.mcap [--every K] [--map NAME]
-    mcsm view [--connect ENDPOINT] [--map NAME] [--foxglove-port P]
+    mcsm export foxglove|g2o|tum FILE.mcap [-o OUT] [--map NAME] [--force] (export-foxglove:
+                                  the same as export foxglove)
+    mcsm view [--connect ENDPOINT] [--map NAME] [--foxglove-port P]   (mcsm_client's, through
+                                  the entry-point group mcsm.commands)
     mcsm --version
 
 ``serve`` prints one line ``listening on <endpoint>`` on stdout when it is ready, and closes

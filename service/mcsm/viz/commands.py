@@ -1,5 +1,6 @@
-"""The ``mcsm plot`` and ``mcsm export-foxglove`` subcommands (``mcsm view``, a client of a live
-server, comes from the client package: :mod:`mcsm_client.view_command`).
+"""The ``mcsm plot`` and ``mcsm export FORMAT`` subcommands (``foxglove``, ``g2o``, ``tum``;
+``mcsm export-foxglove`` is ``export foxglove``). ``mcsm view``, a client of a live server,
+comes from the client package: :mod:`mcsm_client.view_command`.
 
 Exit codes: 0 done; 2 a user's mistake or an unusable input, said in one line on stderr (missing
 or unreadable recording, unknown map, a sequence number the map never reached, bad ground-truth

@@ -1,6 +1,6 @@
 """The one 95 % confidence region every mcsm picture draws (numpy only).
 
-``mcsm plot`` (2-D ellipses, 3-D wireframes), the Foxglove scene of ``mcsm export-foxglove``
+``mcsm plot`` (2-D ellipses, 3-D wireframes), the Foxglove scene of ``mcsm export foxglove``
 and ``mcsm view``, and ROS ``visualization_msgs/Marker`` ellipsoids all take their shape from
 :func:`ellipse` and :func:`ellipsoid` here.
 
