@@ -1,9 +1,9 @@
 """``mcsm view``, as a command of the ``mcsm`` program contributed by the client package.
 
-``mcsm`` finds it through the entry-point group ``mcsm.commands`` (pyproject.toml): a module
-there has ``COMMANDS`` (the subcommand names it adds), ``add_parsers(subparsers)`` and
-``run(args) -> int``. The server package never imports the client package; this module is
-light to import (it only adds arguments) and loads the live view when it runs.
+``mcsm`` finds :func:`add_parser` through the entry-point group ``mcsm.commands``
+(pyproject.toml): it adds the subparser and sets ``run(args) -> int`` as ``plugin_run``. The
+server package never imports the client package; this module is light to import (it only adds
+arguments) and loads the live view when it runs.
 
 Exit codes: 0 stopped by SIGINT/SIGTERM; 2 a user's mistake or an unusable input, said in one
 line on stderr (the ``viz`` extra not installed, no server answering within ``--timeout``, the
@@ -21,11 +21,9 @@ from typing import Any
 
 from mcsm.errors import McsmError
 
-COMMANDS = ("view",)
 
-
-def add_parsers(sub: Any) -> None:
-    """Add ``view`` to ``mcsm``'s subparsers."""
+def add_parser(sub: Any) -> None:
+    """Add ``view`` to ``mcsm``'s subparsers (the ``mcsm.commands`` entry point)."""
     from mcsm.connect import add_connection_args
 
     v = sub.add_parser("view", help="serve a live map to Foxglove or Lichtblick (WebSocket)",
@@ -45,6 +43,7 @@ def add_parsers(sub: Any) -> None:
     v.add_argument("--timeout", type=float, default=10.0, metavar="S",
                    help="wait this long for the map server (default 10 s)")
     v.add_argument("--log-level", default="INFO")
+    v.set_defaults(plugin_run=run)
 
 
 def run(args: argparse.Namespace) -> int:

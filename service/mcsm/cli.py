@@ -231,43 +231,28 @@ def build_parser() -> argparse.ArgumentParser:
     from mcsm.viz.commands import add_parsers as add_viz_parsers
 
     add_viz_parsers(sub)  # plot, export FORMAT, export-foxglove (docs/visualising.md)
-    for mod in {id(m): m for m in plugin_commands().values()}.values():
-        mod.add_parsers(sub)  # e.g. view (mcsm_client.view_command)
+    add_plugin_commands(sub)  # e.g. view, ros2, from the mcsm_client package
     return p
 
 
-#: entry-point group of commands other packages add to ``mcsm`` (``mcsm view``, ``mcsm ros2``)
+#: entry-point group of subcommands other packages add to ``mcsm`` (``mcsm view``, ``mcsm ros2``):
+#: each entry point is a function ``add_parser(subparsers)`` that adds its subparser and sets
+#: its ``run(args) -> int`` with ``set_defaults(plugin_run=...)``. mcsm never imports them by
+#: name, so the server package depends on no client package.
 PLUGIN_GROUP = "mcsm.commands"
-_plugins: dict[str, Any] | None = None
 
 
-def plugin_commands() -> dict[str, Any]:
-    """Subcommand name -> module, for every module of the entry-point group ``mcsm.commands``.
+def add_plugin_commands(sub: Any) -> None:
+    """Add the subcommands of :data:`PLUGIN_GROUP`; one that fails to load is skipped with a
+    warning on stderr (mcsm's own commands still work)."""
+    from importlib.metadata import entry_points
 
-    Such a module has ``COMMANDS`` (names), ``add_parsers(subparsers)`` and ``run(args) ->
-    int``; it must be cheap to import (arguments only; heavy imports when it runs). This is
-    how the client package adds ``mcsm view`` while ``mcsm`` never imports ``mcsm_client``. A
-    plugin that fails to load is named on stderr and left out.
-    """
-    global _plugins
-    if _plugins is None:
-        from importlib.metadata import entry_points
-
-        found: dict[str, Any] = {}
-        for ep in sorted(entry_points(group=PLUGIN_GROUP), key=lambda e: e.name):
-            try:
-                mod = ep.load()
-                names = tuple(getattr(mod, "COMMANDS", (ep.name,)))
-                mod.add_parsers  # noqa: B018 - the protocol's two functions must exist
-                mod.run  # noqa: B018
-            except Exception as exc:  # a broken plugin must not break mcsm
-                print(f"mcsm: command {ep.name!r} ({ep.value}) could not be loaded: "
-                      f"{type(exc).__name__}: {exc}", file=sys.stderr)
-                continue
-            for n in names:
-                found.setdefault(str(n), mod)
-        _plugins = found
-    return _plugins
+    for ep in sorted(entry_points(group=PLUGIN_GROUP), key=lambda e: e.name):
+        try:
+            ep.load()(sub)
+        except Exception as exc:  # a broken plugin must not break mcsm
+            print(f"mcsm: warning: subcommand {ep.name!r} ({ep.value}) not loaded: "
+                  f"{type(exc).__name__}: {exc}", file=sys.stderr)
 
 
 def _para(text: str) -> str:
@@ -294,13 +279,12 @@ def main(argv: list[str] | None = None) -> int:
             return recover_cmd(args)
         if args.command == "cat":
             return cat_cmd(args)
+        if getattr(args, "plugin_run", None) is not None:
+            return int(args.plugin_run(args))
         if args.command in ("plot", "export", "export-foxglove"):
             from mcsm.viz.commands import run as run_viz
 
             return run_viz(args)
-        plugin = plugin_commands().get(args.command)
-        if plugin is not None:
-            return int(plugin.run(args))
         return inspect_cmd(args)
     except BrokenPipeError:  # `mcsm inspect FILE | head`: the reader went away
         import os

@@ -3,9 +3,9 @@ for Foxglove and Lichtblick); the live ``mcsm view`` is the client package's
 (:mod:`mcsm_client.view`) and uses :mod:`mcsm.viz.foxglove_scene`.
 
 :mod:`mcsm.viz.ellipse` (the one 95 % region), :mod:`mcsm.viz.layout` (paths, colours,
-component shifts) and :mod:`mcsm.viz.scene` need numpy only. matplotlib and ``foxglove-sdk`` come with the optional
-extra ``viz`` (``pip install 'mcsm[viz]'``) and are imported only inside the commands that need
-them, never by ``import mcsm`` or ``import mcsm.viz``.
+component shifts) and :mod:`mcsm.viz.scene` need numpy only. matplotlib and ``foxglove-sdk``
+come with the optional extra ``viz`` (``pip install 'mcsm[viz]'``) and are imported only inside
+the commands that need them, never by ``import mcsm`` or ``import mcsm.viz``.
 """
 
 from __future__ import annotations
