@@ -13,8 +13,10 @@
     mcsm cat FILE.mcap [--json] [--samples]
     mcsm plot FILE.mcap -o map.png [--map NAME] [--at SEQ] [--samples] [--truth CSV]
               [--view auto|top|xz|yz|3d]
-    mcsm export-foxglove FILE.mcap -o scene.mcap [--every K] [--map NAME]
-    mcsm view [--connect ENDPOINT] [--map NAME] [--foxglove-port P]
+    mcsm export foxglove|g2o|tum FILE.mcap [-o OUT] [--map NAME] [--force] (export-foxglove:
+                                  the same as export foxglove)
+    mcsm view [--connect ENDPOINT] [--map NAME] [--foxglove-port P]   (mcsm_client's, through
+                                  the entry-point group mcsm.commands)
     mcsm export-rosbag FILE.mcap -o BAG [--map NAME] [--at SEQ]          (ros extra)
     mcsm ros2 [--connect ENDPOINT | --serve] [--ros-args ...]            (ros extra)
     mcsm --version
@@ -83,7 +85,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     so = ServerOptions()
     mo = StochasticMap(2).options()
-    s = sub.add_parser("serve", help="run the map server (embedded Zenoh peer)")
+    s = sub.add_parser("serve", help="run the map server (embedded Zenoh peer)",
+                       description=_para("Run the map server: an embedded Zenoh peer that "
+                                         "serves maps, applies updates in one order, records "
+                                         "every input to MCAP before it acknowledges it, and "
+                                         "answers queries. Prints 'listening on ENDPOINT' "
+                                         "when ready; SIGINT/SIGTERM close the recording."),
+                       epilog=EXIT_CODES_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_connection_args(s, role="server")
     s.add_argument("--connect", action="append", default=None, metavar="ENDPOINT",
                    help="join a Zenoh router (repeatable; mcsm router): clients then find "
@@ -91,7 +99,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "--listen the server listens nowhere itself")
 
     rt = sub.add_parser("router", help="run a Zenoh router that servers and clients join "
-                        "(several servers, one key space)")
+                        "(several servers, one key space)",
+                        description="Run a Zenoh router (no map of its own) that map servers "
+                                    "(mcsm serve --connect) and clients join: several servers, "
+                                    "one key space (docs/fleet.md).")
     rt.add_argument("--listen", required=True, metavar="ENDPOINT",
                     help="endpoint to listen on, e.g. tcp/0.0.0.0:7447")
     rt.add_argument("--zenoh-config", default=None, metavar="FILE",
@@ -175,6 +186,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     raw = argparse.RawDescriptionHelpFormatter
     r = sub.add_parser("replay", help="rebuild the maps of a recording and check its digests",
+                       description=_para("Rebuild every map of a recording with the server's own "
+                                   "code and compare the map's digest at every checkpoint "
+                                   "and snapshot: 'identical' (exit 0), or what differs, where "
+                                   "the file is cut or damaged, or that another arithmetic "
+                                   "version made it (docs/recordings.md)."),
                        epilog=EXIT_CODES_HELP, formatter_class=raw)
     r.add_argument("file", type=Path, help="the recording (complete, cut or damaged)")
     r.add_argument("--json", action="store_true", help="print the result as one JSON line")
@@ -182,13 +198,22 @@ def build_parser() -> argparse.ArgumentParser:
                    help="no progress bar (terminal) or progress lines (log)")
 
     i = sub.add_parser("inspect", help="summarise a recording and verify its CRCs",
+                       description=_para("Check every CRC of a recording (chunks, data section, "
+                                   "summary) and list its maps: options, operations, frames "
+                                   "named, senders, checkpoints, the arithmetic version and "
+                                   "the size per input; nothing is replayed."),
                        epilog=EXIT_CODES_HELP, formatter_class=raw)
-    i.add_argument("file", type=Path)
-    i.add_argument("--json", action="store_true")
+    i.add_argument("file", type=Path, help="the recording (complete, cut or damaged)")
+    i.add_argument("--json", action="store_true",
+                   help="print everything as one JSON object (every checkpoint)")
 
     v = sub.add_parser("recover", help="write a clean, indexed copy of every complete record "
-                       "of a cut or damaged recording", epilog=EXIT_CODES_HELP,
-                       formatter_class=raw)
+                       "of a cut or damaged recording",
+                       description=_para("Copy every complete record of a cut (SIGKILL, full disk) "
+                                   "or damaged (bit rot) recording into a new chunked, indexed "
+                                   "file that every MCAP reader opens; intact chunks after "
+                                   "damage are copied too. Never overwrites a file."),
+                       epilog=EXIT_CODES_HELP, formatter_class=raw)
     v.add_argument("file", type=Path, metavar="IN", help="the cut or damaged recording")
     v.add_argument("-o", "--output", type=Path, required=True, metavar="OUT",
                    help="the new file (refused if it exists)")
@@ -196,26 +221,29 @@ def build_parser() -> argparse.ArgumentParser:
                    help="no progress bar (terminal) or progress lines (log)")
 
     c = sub.add_parser("cat", help="print the inputs of a recording, one per line",
+                       description=_para("Print every recorded input, one per line: map, seq, "
+                                   "operation, frames, sender and request id, and each AT as "
+                                   "its sample count, mean and covariance (or every sample)."),
                        epilog=EXIT_CODES_HELP, formatter_class=raw)
-    c.add_argument("file", type=Path)
+    c.add_argument("file", type=Path, help="the recording (complete, cut or damaged)")
     c.add_argument("--json", action="store_true", help="one JSON object per line")
     c.add_argument("--samples", action="store_true",
                    help="print every sample (default: the mean and covariance of each AT)")
 
     from mcsm.viz.commands import add_parsers as add_viz_parsers
 
-    add_viz_parsers(sub)  # plot, export-foxglove, view (docs/visualising.md)
+    add_viz_parsers(sub)  # plot, export FORMAT, export-foxglove (docs/visualising.md)
     from mcsm.viz.rosbag import add_parser as add_export_rosbag
 
     add_export_rosbag(sub)  # export-rosbag (docs/ros2.md)
-    add_plugin_commands(sub)  # e.g. ros2, from the mcsm-client package
+    add_plugin_commands(sub)  # e.g. view, ros2, from the mcsm_client package
     return p
 
 
-#: entry-point group of subcommands other packages add to ``mcsm`` (``mcsm ros2``): each entry
-#: point is a function ``add_parser(subparsers)`` that adds its subparser and sets its
-#: ``run(args) -> int`` with ``set_defaults(plugin_run=...)``. mcsm never imports them by name,
-#: so the server package depends on no client package.
+#: entry-point group of subcommands other packages add to ``mcsm`` (``mcsm view``, ``mcsm ros2``):
+#: each entry point is a function ``add_parser(subparsers)`` that adds its subparser and sets
+#: its ``run(args) -> int`` with ``set_defaults(plugin_run=...)``. mcsm never imports them by
+#: name, so the server package depends on no client package.
 PLUGIN_GROUP = "mcsm.commands"
 
 
@@ -230,6 +258,13 @@ def add_plugin_commands(sub: Any) -> None:
         except Exception as exc:  # a broken plugin must not break mcsm
             print(f"mcsm: warning: subcommand {ep.name!r} ({ep.value}) not loaded: "
                   f"{type(exc).__name__}: {exc}", file=sys.stderr)
+
+
+def _para(text: str) -> str:
+    """A description wrapped for the raw help formatter (which keeps the exit-code table)."""
+    import textwrap
+
+    return textwrap.fill(text, 79)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -264,7 +299,7 @@ def main(argv: list[str] | None = None) -> int:
             from mcsm.viz.rosbag import run as run_export_rosbag
 
             return run_export_rosbag(args)
-        if args.command in ("plot", "export-foxglove", "view"):
+        if args.command in ("plot", "export", "export-foxglove"):
             from mcsm.viz.commands import run as run_viz
 
             return run_viz(args)
@@ -451,7 +486,10 @@ def _input_file(cmd: str, path: Path) -> str | None:
             pass
     except OSError as exc:
         return f"mcsm {cmd}: {path}: cannot open: {exc.strerror or exc}"
-    return None
+    from mcsm.filetype import not_a_recording
+
+    why = not_a_recording(path)  # e.g. a Foxglove scene: not damaged, not ours
+    return f"mcsm {cmd}: {path}: {why}" if why else None
 
 
 def _output_file(cmd: str, path: Path) -> str | None:
@@ -669,7 +707,9 @@ def inspect_cmd(args: argparse.Namespace) -> int:
         print(f"  frames named in inputs: {len(m['frames'])}")
         print(f"  senders: {len(m['senders'])}")
         cps = m["checkpoints"]
-        print(f"  checkpoints: {len(cps)}")
+        shown = (f" (the first 3 and the last 2 of {len(cps)} listed; --json lists all)"
+                 if len(cps) > 5 else "")
+        print(f"  checkpoints: {len(cps)}{shown}")
         for seq, dig, why_cp in cps[:3] + (cps[-2:] if len(cps) > 5 else cps[3:]):
             print(f"    seq {seq:>7} {why_cp:<8} {dig}")
     return code

@@ -187,6 +187,18 @@ class NoServer(Timeout):
             timeout_s=timeout_s)
 
 
+class Unreachable(Timeout):
+    """The client's Zenoh session could not connect to any endpoint (nothing listens there, or
+    the network refuses): said at once, after Zenoh's own connect timeout."""
+
+    def __init__(self, where: str, connect_timeout_s: float, detail: str = "") -> None:
+        McsmError.__init__(
+            self, f"cannot connect to {where}: no Zenoh peer accepted a connection within "
+            f"{connect_timeout_s:g} s{f' ({detail})' if detail else ''}; is `mcsm serve` "
+            "(or a router) running there?", what="connect", where=where,
+            timeout_s=connect_timeout_s)
+
+
 class NoPermittedServer(Timeout):
     """The map's server is alive, but every request on this key got no reply at all.
 
@@ -208,5 +220,5 @@ _REGISTRY: dict[str, type[McsmError]] = {
               UnknownFrame, FrameExists, InvalidOperation, NotRelated, NumericalError,
               LimitExceeded, Busy, RequestIdReused, Forbidden, NotReplicated, InternalError,
               Timeout,
-              NoServer, NoPermittedServer)
+              NoServer, NoPermittedServer, Unreachable)
 }

@@ -402,7 +402,8 @@ def event(name: str, st: MapState, req: Any, ack: wire.Ack, *, time_ns: int,
     extra.update(op.event_extra(st, req))
     return wire.Event(map=st.name, seq=ack.seq, op=name, kind=ack.kind,
                       frames=tuple(op.event_frames(req, ack)), component=ack.component,
-                      time_ns=time_ns, digest=digest, extra=extra)
+                      time_ns=time_ns, digest=digest, extra=extra,
+                      request_id=str(getattr(req, "request_id", "") or ""))
 
 
 __all__ = ["Change", "Context", "Operation", "OPS", "BY_LEAF", "RECORDED", "INPUT_TOPICS",

@@ -190,9 +190,9 @@ class Server:
             self.states.update(rep.states)
             for st in self.states.values():
                 st.id_ttl_s = o.id_ttl_s
-            log.info("restored %d inputs of %d map(s) from %s (%s)", rep.n_inputs,
-                     len(rep.states), o.restore,
-                     "complete" if rep.complete else f"truncated: {rep.tail_error}")
+            log.info("restored %d map(s) from %s (%s): %s", len(rep.states), o.restore,
+                     "complete" if rep.complete else f"truncated: {rep.tail_error}",
+                     restore_summary(rep))
             for st in self.states.values():
                 if self.recorder is not None:
                     self.recorder.checkpoint(st.name, st.seq, st.digest(), "restore")
@@ -558,6 +558,24 @@ class Server:
             standbys=self.links[st.name].standbys() if st.name in self.links else {},
             sync_standbys=self.links[st.name].sync if st.name in self.links else 0,
             epoch=self.links[st.name].epoch if st.name in self.links else 0)
+
+
+def restore_summary(rep: Any) -> str:
+    """How each map of a ``--restore`` was rebuilt: ``map 'default': snapshot at seq 1000 +
+    332 inputs`` (the recording's state snapshot it started from, and the inputs applied after
+    it), or ``map 'm': 12 inputs`` when it had none."""
+    start: dict[str, int] = {}
+    for cp in rep.checkpoints:  # the first snapshot of each map is the one replay started from
+        if cp.reason == "snapshot":
+            start.setdefault(cp.map, cp.seq)
+    parts = []
+    for name, st in rep.states.items():
+        s0 = start.get(name)
+        if s0 is not None and rep.snapshots_loaded:
+            parts.append(f"map {name!r}: snapshot at seq {s0} + {st.seq - s0} inputs")
+        else:
+            parts.append(f"map {name!r}: {st.seq} inputs")
+    return "; ".join(parts) or "no map"
 
 
 def new_map(map_options: dict[str, Any]) -> StochasticMap:

@@ -29,6 +29,7 @@ import numpy as np
 import numpy.typing as npt
 
 from mcsm.core.at import QUAT_NORM_TOL as _CORE_QUAT_NORM_TOL
+from mcsm.core.at import quaternion_problem
 from mcsm.core.names import FRAME_RULE, NAMESPACE_RULE, is_frame_name, is_namespace
 from mcsm.errors import (
     BadMessage,
@@ -619,6 +620,9 @@ class Event:
     digest: str | None = field(default=None, metadata=wire_field(check_str_or_nil))
     extra: dict[str, Any] = field(default_factory=dict, metadata=wire_field(
         check_map, pack=dict, required=False, omit=_is_empty))
+    request_id: str = field(default="", metadata=wire_field(
+        check_text(MAX_ID_CHARS), key="id", required=False, omit=_is_empty))
+    """The applied request's id (what ``retract``, ``reinstate`` and ``verdict`` take)."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -770,12 +774,13 @@ def unpack_array(obj: Any, fieldname: str, ndim: int, *, max_elems: int) -> Samp
 
 def check_quaternions(q: Samples, fieldname: str = "samples") -> None:
     """Every quaternion ``q[..., 0:4]`` must satisfy ``| |q|^2 - 1 | <= QUAT_NORM_TOL``."""
-    err = np.abs(np.einsum("...i,...i->...", q, q) - 1.0)
+    norm2 = np.einsum("...i,...i->...", q, q)
+    err = np.abs(norm2 - 1.0)
     if err.size and float(err.max()) > QUAT_NORM_TOL:
         idx = np.unravel_index(int(np.argmax(err)), err.shape)
-        raise InvalidSamples(
-            f"{fieldname}: quaternion of sample {tuple(int(i) for i in idx)} has "
-            f"|q|^2 - 1 = {float(err[idx]):.3g} (tolerance {QUAT_NORM_TOL})")
+        where = ", ".join(str(int(i)) for i in idx)
+        raise InvalidSamples(f"{fieldname}: the quaternion of sample {where} "
+                             f"{quaternion_problem(float(norm2[idx]))}")
 
 
 def decode_samples(obj: Any, n_samples: int | None, widths: tuple[int, ...] = (7, 3),

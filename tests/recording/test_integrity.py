@@ -497,6 +497,12 @@ def test_client_sim_refuses_an_unwritable_output_before_running(tmp_path: Path) 
         assert r.returncode == EXIT_USAGE, r.stderr
         assert "does not exist" in r.stderr and "Traceback" not in r.stderr
         assert "iteration" not in r.stdout  # refused before the run started
+        taken = tmp_path / f"taken{flag}"
+        taken.write_text("")
+        r = subprocess.run([str(exe), "sim", "--in-process", "16", "--iterations", "100000",
+                            flag, str(taken)], capture_output=True, text=True, timeout=120)
+        assert r.returncode == EXIT_USAGE and "exists (--force overwrites it)" in r.stderr
+        assert "iteration" not in r.stdout
 
 
 def test_cat_shows_removes_imports_retracts_and_reinstates(
