@@ -94,10 +94,10 @@ def test_first_make_shows_progress_while_the_venv_is_built(tmp_path: Path) -> No
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
     out = r.stdout
-    steps = ["setting up .venv", "[1/3] creating .venv", "[2/3] upgrading pip",
-             "[3/3] installing mcsm", ".venv is ready"]
+    steps = ["setting up .venv", "[1/4] creating .venv", "[2/4] upgrading pip",
+             "[3/4] installing mcsm", "[4/4] building tf2_msgs", ".venv is ready"]
     where = [out.find(s) for s in steps]
     assert all(w >= 0 for w in where) and where == sorted(where), out
-    assert out.find("[3/3]") < out.find("pip install --progress-bar off -e") < \
-        out.find(".venv is ready")
+    assert out.find("[3/4]") < out.find("pip install --progress-bar off -e") < \
+        out.find("[4/4]")
     assert "--quiet -e" not in out  # pip's own lines (Collecting ...) are shown

@@ -30,9 +30,10 @@ def test_the_server_and_mcsm_help_import_no_ros() -> None:
             "print(bad)\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
-    # mcsm --help finds `ros2` through its entry point: the plugin's module, nothing of ROS
+    # mcsm --help finds `ros2` and `view` through their entry points: the plugins' modules,
+    # nothing of ROS
     assert r.stdout.strip() == ("['mcsm_client', 'mcsm_client.ros2', 'mcsm_client.ros2.cli', "
-                                "'mcsm_client.ros2.params']")
+                                "'mcsm_client.ros2.params', 'mcsm_client.view_command']")
     r = subprocess.run([sys.executable, "-m", "mcsm.cli", "--help"], capture_output=True,
                        text=True, timeout=60)
     assert "ros2" in r.stdout and "export-rosbag" in r.stdout
