@@ -87,6 +87,10 @@ class Backend:
     def _allocate(self, shape: tuple[int, ...], dtype: Any) -> Any:
         raise NotImplementedError
 
+    def synchronize(self) -> None:
+        """Wait for every launch so far."""
+        raise NotImplementedError
+
     def reserve(self, nbytes: int, what: str) -> None:
         """Refuse, before anything is allocated, an operation needing ``nbytes`` more."""
         free = self.free_bytes() - HEADROOM_BYTES
@@ -391,20 +395,32 @@ class DeviceComponent:
         the endpoint gain, pcs, lam, cpy, sum_pc), copied to the device here. Returns the
         replaced buffer (the next update's spare)."""
         del threads
+        reuse = spare is not None and spare.shape == self._buf.shape
+        self.backend.reserve(0 if reuse else int(self._buf.nbytes), "the loop closure")
+        out = spare if reuse else self.backend.empty(self._buf.shape)
+        codes = self.frame_pass(args, arrays, out)
+        code = first_failure(self.backend.xp, *codes)
+        if code == kernel.NONFINITE_GAIN:
+            raise NumericalError("the update's gain is not finite")
+        if code != kernel.OK:
+            raise NumericalError("the update pushed quaternions to zero or non-finite values")
+        return self.swap_buffer(out)
+
+    def frame_pass(self, args: kernel.JointArgs, arrays: dict[str, Array], out: Any
+                   ) -> tuple[Any, Any]:
+        """The three launches of the joint update's frame pass into ``out`` (a buffer shaped
+        like this component's); the per-frame gain codes and apply flags (device arrays)."""
         be, n, m, cap = self.backend, self.n_samples, self._m, self.capacity
         p, gain = int(args.p), int(args.gain)
         mm = int(args.k) if gain else p
         ntask, nacc = (17 if gain else 7), 2 + mm
-        reuse = spare is not None and spare.shape == self._buf.shape
         small = sum(int(a.nbytes) for a in arrays.values()) + ctypes.sizeof(args)
-        be.reserve((0 if reuse else int(self._buf.nbytes)) + small
-                   + 8 * m * (4 * ntask * nacc + 7 * p + 7) + 8 * m, "the loop closure")
+        be.reserve(small + 8 * m * (4 * ntask * nacc + 7 * p + 7) + 8 * m, "the loop closure")
         dev = {name: be.upload(np.ascontiguousarray(a)) for name, a in arrays.items()}
         dargs = kernel.JointArgs.from_buffer_copy(args)
         for name, a in dev.items():
             setattr(dargs, name, be.address(a))
         abuf = be.upload(np.frombuffer(bytes(dargs), dtype=np.uint8).copy())
-        out = spare if reuse else be.empty(self._buf.shape)
         part = be.empty((4 * ntask * nacc * m,))
         cxy, nmean = be.empty((7 * p * m,)), be.empty((7 * m,))
         rc, flags = be.zeros((m,), np.int32), be.zeros((m,), np.int32)
@@ -416,13 +432,9 @@ class DeviceComponent:
         be.launch("mk_d_joint_apply", m * ((n + spt - 1) // spt),
                   (abuf, self._buf, _I64(cap), out, _I64(m), self._point, cxy, nmean, rc,
                    _I32(spt), flags))
-        code = first_failure(be.xp, rc, flags)
+        be.synchronize()  # the uploads above must outlive the launches
         del dev, abuf
-        if code == kernel.NONFINITE_GAIN:
-            raise NumericalError("the update's gain is not finite")
-        if code != kernel.OK:
-            raise NumericalError("the update pushed quaternions to zero or non-finite values")
-        return self.swap_buffer(out)
+        return rc, flags
 
     def copy(self) -> DeviceComponent:
         self.backend.reserve(self.nbytes, "copying a component")

@@ -118,18 +118,11 @@ def inflation_factor(prep: Prepared, inflation: float | str, nis_avg: float
     return min(max(lam, 1.0), ADAPT_MAX), avg
 
 
-def apply(comp: Component | DeviceComponent, ia: int, ib: int, prep: Prepared, *, space: str,
-          gain: str, shrink: float | None, inflation: float, threads: int, spare: Any
-          ) -> Any:
-    """Move every frame of ``comp``; returns the replaced buffer (the next update's spare).
-    A component in device memory runs the same frame pass on the device
-    (:meth:`DeviceComponent.apply_joint`).
-
-    Raises
-    ------
-    NumericalError
-        If a frame's gain is not finite or a quaternion would go to zero (map unchanged).
-    """
+def frame_args(comp: Component | DeviceComponent, ia: int, ib: int, prep: Prepared, *,
+               space: str, gain: str, shrink: float | None, inflation: float
+               ) -> tuple[kernel.JointArgs, dict[str, Array]]:
+    """The frame pass's arguments (``mk_joint_args``) and the arrays they point to (by
+    name; the CPU sets the pointers, the device copies the arrays first)."""
     p, n = prep.p, comp.n_samples
     info = prep.info
     var_y = np.ascontiguousarray(info[3: 3 + p])
@@ -147,6 +140,23 @@ def apply(comp: Component | DeviceComponent, ia: int, ib: int, prep: Prepared, *
         pcs, lam, cpy, sum_pc, args.k = kernel.endpoint_prep(
             comp.edge_rows(ia), comp.edge_rows(ib), prep.point, prep.yc, var_y, args.shrink)
         arrays.update(pcs=pcs, lam=lam, cpy=cpy, sum_pc=sum_pc)
+    return args, arrays
+
+
+def apply(comp: Component | DeviceComponent, ia: int, ib: int, prep: Prepared, *, space: str,
+          gain: str, shrink: float | None, inflation: float, threads: int, spare: Any
+          ) -> Any:
+    """Move every frame of ``comp``; returns the replaced buffer (the next update's spare).
+    A component in device memory runs the same frame pass on the device
+    (:meth:`DeviceComponent.apply_joint`).
+
+    Raises
+    ------
+    NumericalError
+        If a frame's gain is not finite or a quaternion would go to zero (map unchanged).
+    """
+    args, arrays = frame_args(comp, ia, ib, prep, space=space, gain=gain, shrink=shrink,
+                              inflation=inflation)
     if isinstance(comp, DeviceComponent):
         return comp.apply_joint(args, arrays, threads, spare)
     for name, a in arrays.items():

@@ -1,0 +1,270 @@
+"""The device kernel without a GPU: ``_kernel_cuda.cu`` compiled as host C++ with the CPU
+kernel's flags and launched thread by thread (:mod:`mcsm.core.emulation`), against the CPU
+kernel, bit for bit; and the device backend's Python code (:mod:`mcsm.core.device`) run end
+to end on that emulated device.
+
+What this shows: the device source computes the CPU kernel's bits (same arithmetic, same
+summation order, same checks and codes) and the glue around it keeps the map's digests. What
+it cannot show: that NVRTC compiles it to the same operations (tests/core/test_device_nvrtc.py
+checks the PTX for fused multiply-adds) and that a real GPU runs it so
+(``benchmarks/gpu_check.py``, on a machine with one).
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcsm import StochasticMap
+from mcsm.core import emulation, joint, kernel
+from mcsm.core.device import HEADROOM_BYTES, DeviceComponent
+from mcsm.core.storage import to_rows
+from mcsm.errors import DeviceMemoryExceeded, InvalidOperation
+
+from tests.core import portable_history
+from tests.helpers import random_at
+
+ROOT = Path(__file__).resolve().parents[2]
+RECORDINGS = sorted((ROOT / "recordings").glob("*.mcap"))
+
+
+def _setup_flags() -> list[str]:
+    tree = ast.parse((ROOT / "setup.py").read_text())
+    for node in tree.body:
+        if isinstance(node, ast.Assign) and getattr(node.targets[0], "id", "") == "KERNEL_FLAGS":
+            flags: list[str] = ast.literal_eval(node.value)
+            return flags
+    raise AssertionError("setup.py has no KERNEL_FLAGS")
+
+
+@pytest.fixture(scope="module")
+def backend(tmp_path_factory: pytest.TempPathFactory) -> emulation.EmulatedBackend:
+    lib = emulation.build(tmp_path_factory.mktemp("emu"))
+    return emulation.EmulatedBackend(lib)
+
+
+def test_the_emulation_is_built_with_the_kernels_flags() -> None:
+    c_only = {"-std=gnu11", "-fexcess-precision=standard"}
+    assert [f for f in _setup_flags() if f not in c_only] == \
+        [f for f in emulation.EMULATION_FLAGS if f != "-std=c++14"]
+
+
+# ------------------------------------------------------------------ the frame pass, bit for bit
+
+def _component(n: int, rng: np.random.Generator) -> StochasticMap:
+    """A 3-D chain of 24 frames with point landmarks, after a few loop closures."""
+    m = StochasticMap(n, gate=None, threads=1)
+    for k in range(24):
+        m.update(f"p{k}", f"p{k + 1}", random_at(rng, n, kind="cloud", t_sigma=0.2,
+                                                  r_sigma=0.05))
+        if k % 5 == 0:
+            m.update(f"p{k}", f"l{k}", 2.0 + 0.2 * rng.standard_normal((n, 3)))
+    for a, b in ((2, 20), (7, 24), (0, 13)):
+        m.update(f"p{a}", f"p{b}", m.query(f"p{a}", f"p{b}")[rng.permutation(n)])
+    return m
+
+
+CASES = {  # name: (options of the pass, point observation, tampering)
+    "default": (dict(space="tangent", gain="direct", shrink=4.0, inflation=1.0), False, ""),
+    "quaternion": (dict(space="quaternion", gain="direct", shrink=4.0, inflation=1.0), False, ""),
+    "endpoints": (dict(space="tangent", gain="endpoints", shrink=4.0, inflation=1.002), False,
+                  ""),
+    "endpoints-no-shrink": (dict(space="tangent", gain="endpoints", shrink=None,
+                                 inflation=1.0), False, ""),
+    "enkf-no-shrink-inflation": (dict(space="quaternion", gain="direct", shrink=None,
+                                      inflation=1.01, rule="enkf"), False, ""),
+    "denkf-point": (dict(space="tangent", gain="direct", shrink=4.0, inflation=1.0,
+                         rule="denkf"), True, ""),
+    "endpoints-point-denkf-inflation": (dict(space="tangent", gain="endpoints", shrink=4.0,
+                                             inflation=1.01, rule="denkf"), True, ""),
+    "gain-bound": (dict(space="tangent", gain="direct", shrink=4.0, inflation=1.0), False,
+                   "wmax"),
+    "nan-in-one-frame": (dict(space="tangent", gain="direct", shrink=4.0, inflation=1.0),
+                         False, "nan"),
+    "quaternion-to-zero": (dict(space="tangent", gain="direct", shrink=4.0, inflation=1.0),
+                           False, "tiny-q"),
+}
+
+
+def _pass(name: str, n: int) -> tuple[dict[str, object], object]:
+    """One loop closure's frame pass inputs for case ``name``."""
+    opts, point, tamper = CASES[name]
+    rng = np.random.default_rng(20261201 + n)
+    m = _component(n, rng)
+    c = m._comps[m._where["p0"]]
+    a, b = ("p3", "l15") if point else ("p3", "p21")
+    x = m.query(a, b)[rng.permutation(n)]
+    x_rows = to_rows(x[:, :3] if point else x)
+    rule = str(opts.get("rule", "ensrf"))
+    prep = joint.prepare(c, c.index[a], c.index[b], x_rows, point, str(opts["space"]), rule)
+    args, arrays = joint.frame_args(c, c.index[a], c.index[b], prep, space=str(opts["space"]),
+                                    gain=str(opts["gain"]), shrink=opts["shrink"],  # type: ignore[arg-type]
+                                    inflation=float(opts["inflation"]))  # type: ignore[arg-type]
+    rows = c.rows.copy()
+    if tamper == "wmax":
+        args.wmax = 1e300
+    elif tamper == "nan":
+        rows[9, 1, 17] = np.nan
+    elif tamper == "tiny-q":
+        rows[11, 3:, 5] = [1e-3, 0.0, 0.0, 0.0]
+    return {"args": args, "arrays": arrays, "rows": rows, "flags": c.point_list(),
+            "frames": list(c.frames)}, prep
+
+
+def _cpu(case: dict[str, object]) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame codes and outputs of the CPU kernel, one frame per call."""
+    args, arrays, rows = case["args"], case["arrays"], case["rows"]
+    assert isinstance(args, kernel.JointArgs) and isinstance(arrays, dict)
+    assert isinstance(rows, np.ndarray)
+    for name_, arr in arrays.items():
+        setattr(args, name_, kernel.ptr(arr))
+    flags = np.asarray(case["flags"], dtype=np.uint8)
+    out = np.zeros_like(rows)
+    codes = np.array([kernel.joint_frames(args, rows, out, flags, f, f + 1)
+                      for f in range(rows.shape[0])])
+    return codes, out
+
+
+def _device(case: dict[str, object], be: emulation.EmulatedBackend
+            ) -> tuple[np.ndarray, np.ndarray]:
+    args, arrays, rows = case["args"], case["arrays"], case["rows"]
+    assert isinstance(args, kernel.JointArgs) and isinstance(arrays, dict)
+    assert isinstance(rows, np.ndarray)
+    dc = DeviceComponent.from_rows(be, list(case["frames"]), list(case["flags"]), rows)  # type: ignore[call-overload]
+    out = be.zeros(dc.buffer.shape)
+    rc, fl = dc.frame_pass(args, arrays, out)
+    codes = np.where(rc != 0, rc, np.where(fl & 1, kernel.BAD_QUATERNION,
+                                           np.where(fl & 2, kernel.NONFINITE, 0)))
+    return codes, np.ascontiguousarray(np.transpose(out[:, :, : rows.shape[0]], (2, 0, 1)))
+
+
+@pytest.mark.parametrize("n", [50, 1003])  # neither a multiple of 4: the lanes' tails count
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_the_device_frame_pass_gives_the_cpu_kernels_bits(
+        backend: emulation.EmulatedBackend, name: str, n: int) -> None:
+    case, _prep = _pass(name, n)
+    cpu_codes, cpu_out = _cpu(case)
+    dev_codes, dev_out = _device(case, backend)
+    np.testing.assert_array_equal(dev_codes, cpu_codes)
+    ok = cpu_codes == kernel.OK
+    if CASES[name][2]:
+        assert not ok.all(), "the forced failure did not fail: the case tests nothing"
+    else:
+        assert ok.all()
+    # the gain bound trips every frame with a gain (the codes are the comparison there)
+    assert ok.sum() >= (1 if CASES[name][2] == "wmax" else 20)
+    same = dev_out[ok].view(np.uint64) == cpu_out[ok].view(np.uint64)
+    assert same.all(), f"{int((~same).sum())} of {same.size} values differ"
+
+
+def test_a_contracting_build_of_the_same_source_differs(tmp_path: Path,
+                                                         backend: emulation.EmulatedBackend
+                                                         ) -> None:
+    """The negative control: compiled with fused multiply-adds, the same source gives other
+    bits, so the comparison above can fail."""
+    flags = [f for f in emulation.EMULATION_FLAGS if f != "-ffp-contract=off"]
+    lib = emulation.build(tmp_path, [*flags, "-ffp-contract=fast", "-mfma"])
+    fma = emulation.EmulatedBackend(lib)
+    case, _ = _pass("default", 50)
+    _, ref = _device(case, backend)
+    _, got = _device(case, fma)
+    differ = int((ref.view(np.uint64) != got.view(np.uint64)).sum())
+    assert differ > 100, differ
+
+
+# ------------------------------------------------------------------ the backend's Python code
+
+@pytest.mark.parametrize("option_set", [k for k in portable_history.OPTION_SETS if k != "paper"])
+def test_the_scripted_history_has_the_cpus_digest_on_the_emulated_device(
+        backend: emulation.EmulatedBackend, option_set: str) -> None:
+    opts = portable_history.OPTION_SETS[option_set]
+    before = dict(backend.launches)
+    got = portable_history.history(1, device=backend, **opts)
+    assert got == portable_history.history(1, **opts)
+    for k in ("mk_d_joint_apply", "mk_d_transform", "mk_d_canon_check"):
+        assert backend.launches.get(k, 0) > before.get(k, 0), f"{k} never ran"
+
+
+def test_the_deferral_history_on_the_emulated_device(backend: emulation.EmulatedBackend) -> None:
+    assert portable_history.deferral_history(1, device=backend) == \
+        portable_history.deferral_history(1)
+
+
+@pytest.mark.parametrize("path", RECORDINGS, ids=[p.name for p in RECORDINGS])
+def test_the_shipped_recordings_replay_identical_on_the_emulated_device(
+        backend: emulation.EmulatedBackend, path: Path) -> None:
+    from mcsm.recording import replay
+
+    rep = replay(path, device=backend)
+    assert rep.identical, rep.divergence
+    assert all(st.map.device == "emulated" for st in rep.states.values())
+
+
+def _chain(be: emulation.EmulatedBackend, n: int = 24) -> StochasticMap:
+    rng = np.random.default_rng(20261202)
+    m = StochasticMap(n, gate=None, threads=1, device=be)
+    for k in range(12):
+        m.update(f"p{k}", f"p{k + 1}", random_at(rng, n, kind="cloud", t_sigma=0.1))
+    for k in range(3):
+        m.update(f"q{k}", f"q{k + 1}", random_at(rng, n, kind="cloud", t_sigma=0.1))
+    return m
+
+
+@pytest.mark.parametrize("what", ["loop closure", "join", "new frame", "remove root"])
+def test_a_request_that_does_not_fit_is_refused_and_changes_nothing(
+        backend: emulation.EmulatedBackend, what: str) -> None:
+    n = 24
+    m = _chain(backend, n)
+    rng = np.random.default_rng(20261203)
+    comp = m._comps[m._where["p0"]]
+    k = 12
+    while len(comp) < comp.capacity:  # fill p's capacity, so that a new frame must grow it
+        m.update(f"p{k}", f"p{k + 1}", random_at(rng, n, kind="cloud", t_sigma=0.1))
+        k += 1
+    assert isinstance(comp, DeviceComponent) and len(comp) == comp.capacity == 16
+    m._spare = None  # a loop closure must then allocate a whole component
+    before = m.state_digest()
+    mem = m.memory()
+    assert mem["device"] == "emulated" and mem["bytes"] > 16 * 7 * n * 8
+    op = {"loop closure": lambda: m.update("p1", "p9", m.query("p1", "p9")),
+          "join": lambda: m.update("p3", "q0", random_at(rng, n, kind="cloud")),
+          "new frame": lambda: m.update(f"p{k}", "new", random_at(rng, n, kind="cloud")),
+          "remove root": lambda: m.remove("p0")}[what]
+    old = backend.limit_bytes
+    backend.limit_bytes = backend.in_use + HEADROOM_BYTES + 1024
+    try:
+        with pytest.raises(DeviceMemoryExceeded, match="device memory"):
+            op()
+        assert m.state_digest() == before
+    finally:
+        backend.limit_bytes = old
+    op()
+    assert m.state_digest() != before
+
+
+def test_device_cuda_without_a_gpu_is_one_clear_error() -> None:
+    try:
+        import cupy
+
+        if cupy.cuda.runtime.getDeviceCount() > 0:
+            pytest.skip("a CUDA GPU is present: benchmarks/gpu_check.py covers it")
+    except Exception:  # no CuPy, or CuPy without a driver: the case under test
+        pass
+    with pytest.raises(InvalidOperation, match="device='cuda'"):
+        StochasticMap(50, device="cuda")
+
+
+def test_the_paper_method_stays_on_the_cpu(backend: emulation.EmulatedBackend) -> None:
+    with pytest.raises(InvalidOperation, match="CPU only"):
+        StochasticMap(50, method="paper", device=backend)
+    with pytest.raises(InvalidOperation, match="device must be"):
+        StochasticMap(50, device="tpu")
+
+
+def test_device_is_not_an_option_of_the_state(backend: emulation.EmulatedBackend) -> None:
+    m = StochasticMap(24, device=backend)
+    assert "device" not in m.options()
+    assert m.state_digest() == StochasticMap(24).state_digest()
+    assert m.device == "emulated" and StochasticMap(24).device == "cpu"
