@@ -43,9 +43,9 @@ HERE = Path(__file__).resolve().parent
 SOURCE = HERE / "_kernel_cuda.cu"
 HEADER = HERE / "kernel_common.h"
 #: NVRTC options: no fused multiply-add (the rule that makes the bits the CPU's); IEEE
-#: division and square root and no flush-to-zero (the defaults, stated).
-NVRTC_OPTIONS = ("--fmad=false", "--prec-div=true", "--prec-sqrt=true", "--ftz=false",
-                 "--std=c++14")
+#: division and square root and no flush-to-zero (the defaults, stated). The language
+#: standard is NVRTC's default (C++17): the source needs C++11 templates only.
+NVRTC_OPTIONS = ("--fmad=false", "--prec-div=true", "--prec-sqrt=true", "--ftz=false")
 BLOCK = 256
 #: samples per thread of the apply step (each thread loads its frame's gain once for them)
 SAMPLES_PER_THREAD = 8

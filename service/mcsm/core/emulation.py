@@ -125,3 +125,52 @@ class EmulatedBackend(Backend):
 
     def synchronize(self) -> None:
         return None
+
+
+def nvrtc_library() -> str | None:
+    """The path of an NVRTC library (the ``nvidia-cuda-nvrtc`` wheel's, or the system's)."""
+    import ctypes.util
+    import importlib.util
+
+    spec = importlib.util.find_spec("nvidia")
+    for root in (list(spec.submodule_search_locations or []) if spec is not None else []):
+        for pattern in ("cu13/lib/libnvrtc.so*", "cuda_nvrtc/lib/libnvrtc.so*",
+                        "cu12/lib/libnvrtc.so*"):
+            found = sorted(p for p in Path(root).glob(pattern) if "builtins" not in p.name)
+            if found:
+                return str(found[0])
+    return ctypes.util.find_library("nvrtc")
+
+
+def compile_ptx(options: Sequence[str], arch: str = "compute_90",
+                library: str | None = None) -> str:
+    """The device kernel's PTX, compiled by NVRTC through ctypes (no GPU needed) with
+    ``options`` (e.g. :data:`mcsm.core.device.NVRTC_OPTIONS`). Raises RuntimeError with
+    NVRTC's log when it does not compile, or when no NVRTC library is found."""
+    from mcsm.core.device import device_source
+
+    path = library or nvrtc_library()
+    if path is None:
+        raise RuntimeError("no NVRTC library (pip install nvidia-cuda-nvrtc)")
+    lib = ctypes.CDLL(path)
+    prog = ctypes.c_void_p()
+    src = device_source().encode()
+    if lib.nvrtcCreateProgram(ctypes.byref(prog), src, b"_kernel_cuda.cu", 0, None, None):
+        raise RuntimeError("nvrtcCreateProgram failed")
+    try:
+        opts = [f"--gpu-architecture={arch}", *options]
+        arr = (ctypes.c_char_p * len(opts))(*[o.encode() for o in opts])
+        rc = lib.nvrtcCompileProgram(prog, len(opts), arr)
+        size = ctypes.c_size_t()
+        lib.nvrtcGetProgramLogSize(prog, ctypes.byref(size))
+        log = ctypes.create_string_buffer(size.value)
+        lib.nvrtcGetProgramLog(prog, log)
+        if rc != 0:
+            raise RuntimeError(f"NVRTC could not compile the device kernel ({rc}):\n"
+                               f"{log.value.decode(errors='replace')}")
+        lib.nvrtcGetPTXSize(prog, ctypes.byref(size))
+        ptx = ctypes.create_string_buffer(size.value)
+        lib.nvrtcGetPTX(prog, ptx)
+        return ptx.value.decode()
+    finally:
+        lib.nvrtcDestroyProgram(ctypes.byref(prog))
