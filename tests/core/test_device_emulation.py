@@ -18,12 +18,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 from mcsm import StochasticMap
-from mcsm.core import emulation, joint, kernel
+from mcsm.core import emulation, kernel
 from mcsm.core.device import HEADROOM_BYTES, DeviceComponent
-from mcsm.core.storage import to_rows
 from mcsm.errors import DeviceMemoryExceeded, InvalidOperation
 
-from tests.core import portable_history
+from tests.core import device_cases, portable_history
 from tests.helpers import random_at
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -53,108 +52,21 @@ def test_the_emulation_is_built_with_the_kernels_flags() -> None:
 
 # ------------------------------------------------------------------ the frame pass, bit for bit
 
-def _component(n: int, rng: np.random.Generator) -> StochasticMap:
-    """A 3-D chain of 24 frames with point landmarks, after a few loop closures."""
-    m = StochasticMap(n, gate=None, threads=1)
-    for k in range(24):
-        m.update(f"p{k}", f"p{k + 1}", random_at(rng, n, kind="cloud", t_sigma=0.2,
-                                                  r_sigma=0.05))
-        if k % 5 == 0:
-            m.update(f"p{k}", f"l{k}", 2.0 + 0.2 * rng.standard_normal((n, 3)))
-    for a, b in ((2, 20), (7, 24), (0, 13)):
-        m.update(f"p{a}", f"p{b}", m.query(f"p{a}", f"p{b}")[rng.permutation(n)])
-    return m
-
-
-CASES = {  # name: (options of the pass, point observation, tampering)
-    "default": (dict(space="tangent", gain="direct", shrink=4.0, inflation=1.0), False, ""),
-    "quaternion": (dict(space="quaternion", gain="direct", shrink=4.0, inflation=1.0), False, ""),
-    "endpoints": (dict(space="tangent", gain="endpoints", shrink=4.0, inflation=1.002), False,
-                  ""),
-    "endpoints-no-shrink": (dict(space="tangent", gain="endpoints", shrink=None,
-                                 inflation=1.0), False, ""),
-    "enkf-no-shrink-inflation": (dict(space="quaternion", gain="direct", shrink=None,
-                                      inflation=1.01, rule="enkf"), False, ""),
-    "denkf-point": (dict(space="tangent", gain="direct", shrink=4.0, inflation=1.0,
-                         rule="denkf"), True, ""),
-    "endpoints-point-denkf-inflation": (dict(space="tangent", gain="endpoints", shrink=4.0,
-                                             inflation=1.01, rule="denkf"), True, ""),
-    "gain-bound": (dict(space="tangent", gain="direct", shrink=4.0, inflation=1.0), False,
-                   "wmax"),
-    "nan-in-one-frame": (dict(space="tangent", gain="direct", shrink=4.0, inflation=1.0),
-                         False, "nan"),
-    "quaternion-to-zero": (dict(space="tangent", gain="direct", shrink=4.0, inflation=1.0),
-                           False, "tiny-q"),
-}
-
-
-def _pass(name: str, n: int) -> tuple[dict[str, object], object]:
-    """One loop closure's frame pass inputs for case ``name``."""
-    opts, point, tamper = CASES[name]
-    rng = np.random.default_rng(20261201 + n)
-    m = _component(n, rng)
-    c = m._comps[m._where["p0"]]
-    a, b = ("p3", "l15") if point else ("p3", "p21")
-    x = m.query(a, b)[rng.permutation(n)]
-    x_rows = to_rows(x[:, :3] if point else x)
-    rule = str(opts.get("rule", "ensrf"))
-    prep = joint.prepare(c, c.index[a], c.index[b], x_rows, point, str(opts["space"]), rule)
-    args, arrays = joint.frame_args(c, c.index[a], c.index[b], prep, space=str(opts["space"]),
-                                    gain=str(opts["gain"]), shrink=opts["shrink"],  # type: ignore[arg-type]
-                                    inflation=float(opts["inflation"]))  # type: ignore[arg-type]
-    rows = c.rows.copy()
-    if tamper == "wmax":
-        args.wmax = 1e300
-    elif tamper == "nan":
-        rows[9, 1, 17] = np.nan
-    elif tamper == "tiny-q":
-        rows[11, 3:, 5] = [1e-3, 0.0, 0.0, 0.0]
-    return {"args": args, "arrays": arrays, "rows": rows, "flags": c.point_list(),
-            "frames": list(c.frames)}, prep
-
-
-def _cpu(case: dict[str, object]) -> tuple[np.ndarray, np.ndarray]:
-    """Per-frame codes and outputs of the CPU kernel, one frame per call."""
-    args, arrays, rows = case["args"], case["arrays"], case["rows"]
-    assert isinstance(args, kernel.JointArgs) and isinstance(arrays, dict)
-    assert isinstance(rows, np.ndarray)
-    for name_, arr in arrays.items():
-        setattr(args, name_, kernel.ptr(arr))
-    flags = np.asarray(case["flags"], dtype=np.uint8)
-    out = np.zeros_like(rows)
-    codes = np.array([kernel.joint_frames(args, rows, out, flags, f, f + 1)
-                      for f in range(rows.shape[0])])
-    return codes, out
-
-
-def _device(case: dict[str, object], be: emulation.EmulatedBackend
-            ) -> tuple[np.ndarray, np.ndarray]:
-    args, arrays, rows = case["args"], case["arrays"], case["rows"]
-    assert isinstance(args, kernel.JointArgs) and isinstance(arrays, dict)
-    assert isinstance(rows, np.ndarray)
-    dc = DeviceComponent.from_rows(be, list(case["frames"]), list(case["flags"]), rows)  # type: ignore[call-overload]
-    out = be.zeros(dc.buffer.shape)
-    rc, fl = dc.frame_pass(args, arrays, out)
-    codes = np.where(rc != 0, rc, np.where(fl & 1, kernel.BAD_QUATERNION,
-                                           np.where(fl & 2, kernel.NONFINITE, 0)))
-    return codes, np.ascontiguousarray(np.transpose(out[:, :, : rows.shape[0]], (2, 0, 1)))
-
-
 @pytest.mark.parametrize("n", [50, 1003])  # neither a multiple of 4: the lanes' tails count
-@pytest.mark.parametrize("name", sorted(CASES))
+@pytest.mark.parametrize("name", sorted(device_cases.CASES))
 def test_the_device_frame_pass_gives_the_cpu_kernels_bits(
         backend: emulation.EmulatedBackend, name: str, n: int) -> None:
-    case, _prep = _pass(name, n)
-    cpu_codes, cpu_out = _cpu(case)
-    dev_codes, dev_out = _device(case, backend)
+    case, _prep = device_cases.frame_case(name, n)
+    cpu_codes, cpu_out = device_cases.cpu_pass(case)
+    dev_codes, dev_out = device_cases.device_pass(case, backend)
     np.testing.assert_array_equal(dev_codes, cpu_codes)
     ok = cpu_codes == kernel.OK
-    if CASES[name][2]:
+    if device_cases.CASES[name][2]:
         assert not ok.all(), "the forced failure did not fail: the case tests nothing"
     else:
         assert ok.all()
     # the gain bound trips every frame with a gain (the codes are the comparison there)
-    assert ok.sum() >= (1 if CASES[name][2] == "wmax" else 20)
+    assert ok.sum() >= (1 if device_cases.CASES[name][2] == "wmax" else 20)
     same = dev_out[ok].view(np.uint64) == cpu_out[ok].view(np.uint64)
     assert same.all(), f"{int((~same).sum())} of {same.size} values differ"
 
@@ -167,9 +79,9 @@ def test_a_contracting_build_of_the_same_source_differs(tmp_path: Path,
     flags = [f for f in emulation.EMULATION_FLAGS if f != "-ffp-contract=off"]
     lib = emulation.build(tmp_path, [*flags, "-ffp-contract=fast", "-mfma"])
     fma = emulation.EmulatedBackend(lib)
-    case, _ = _pass("default", 50)
-    _, ref = _device(case, backend)
-    _, got = _device(case, fma)
+    case, _ = device_cases.frame_case("default", 50)
+    _, ref = device_cases.device_pass(case, backend)
+    _, got = device_cases.device_pass(case, fma)
     differ = int((ref.view(np.uint64) != got.view(np.uint64)).sum())
     assert differ > 100, differ
 
