@@ -180,3 +180,43 @@ def test_device_is_not_an_option_of_the_state(backend: emulation.EmulatedBackend
     assert "device" not in m.options()
     assert m.state_digest() == StochasticMap(24).state_digest()
     assert m.device == "emulated" and StochasticMap(24).device == "cpu"
+
+
+# ------------------------------------------------------------------ benchmarks/gpu_check.py
+
+def _gpu_check(tmp_path: Path, *args: str) -> tuple[int, str]:
+    import subprocess
+    import sys
+
+    res = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "gpu_check.py"),
+                          "--out", str(tmp_path), *args], cwd=ROOT, capture_output=True,
+                         text=True, timeout=300, check=False)
+    return res.returncode, res.stdout + res.stderr
+
+
+def test_gpu_check_rehearses_every_section_on_the_emulated_device(tmp_path: Path) -> None:
+    """The script a GPU session runs once, unattended: every section runs and agrees here on
+    the emulated device (small sizes), and its report files are written."""
+    rc, out = _gpu_check(tmp_path, "--emulate", "--sizes", "40x50,24x1003", "--repeats", "2",
+                         "--max-constraints", "150", "--dataset-samples", "16")
+    assert rc == 0, out[-3000:]
+    assert "FAILED" not in out and "DIFFERENT" not in out and "DIVERGED" not in out
+    assert out.count("identical") >= 20 + len(RECORDINGS) + 2
+    assert "| 40 | 50 |" in out and "| 24 | 1003 |" in out
+    assert "every comparison agreed" in out
+    report = (tmp_path / "gpu_check.txt").read_text()
+    assert "## timings" in report and "## bits" in report
+    assert (tmp_path / "gpu_check.json").stat().st_size > 100
+
+
+def test_gpu_check_without_a_gpu_says_so_and_exits_0(tmp_path: Path) -> None:
+    try:
+        import cupy
+
+        if cupy.cuda.runtime.getDeviceCount() > 0:
+            pytest.skip("a GPU is present")
+    except Exception:  # no CuPy or no driver: the case under test
+        pass
+    rc, out = _gpu_check(tmp_path)
+    assert rc == 0, out[-2000:]
+    assert "no GPU here" in out

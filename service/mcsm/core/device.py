@@ -408,9 +408,19 @@ class DeviceComponent:
 
     def frame_pass(self, args: kernel.JointArgs, arrays: dict[str, Array], out: Any
                    ) -> tuple[Any, Any]:
-        """The three launches of the joint update's frame pass into ``out`` (a buffer shaped
-        like this component's); the per-frame gain codes and apply flags (device arrays)."""
-        be, n, m, cap = self.backend, self.n_samples, self._m, self.capacity
+        """The joint update's frame pass into ``out`` (a buffer shaped like this
+        component's): its inputs copied to the device, then :meth:`launch_pass`; the
+        per-frame gain codes and apply flags (device arrays)."""
+        inputs = self.pass_inputs(args, arrays)
+        codes = self.launch_pass(inputs, out)
+        self.backend.synchronize()  # the uploaded inputs must outlive the launches
+        del inputs
+        return codes
+
+    def pass_inputs(self, args: kernel.JointArgs, arrays: dict[str, Array]) -> dict[str, Any]:
+        """The frame pass's inputs on the device (the weights, the prediction, the argument
+        struct pointing at them) and its work arrays."""
+        be, m = self.backend, self._m
         p, gain = int(args.p), int(args.gain)
         mm = int(args.k) if gain else p
         ntask, nacc = (17 if gain else 7), 2 + mm
@@ -420,20 +430,28 @@ class DeviceComponent:
         dargs = kernel.JointArgs.from_buffer_copy(args)
         for name, a in dev.items():
             setattr(dargs, name, be.address(a))
-        abuf = be.upload(np.frombuffer(bytes(dargs), dtype=np.uint8).copy())
-        part = be.empty((4 * ntask * nacc * m,))
-        cxy, nmean = be.empty((7 * p * m,)), be.empty((7 * m,))
-        rc, flags = be.zeros((m,), np.int32), be.zeros((m,), np.int32)
-        spt = SAMPLES_PER_THREAD
-        be.launch("mk_d_joint_sums", 4 * ntask * m, (abuf, self._buf, _I64(cap), _I64(m),
+        return {"arrays": dev, "args": be.upload(np.frombuffer(bytes(dargs), dtype=np.uint8)
+                                                 .copy()),
+                "p": p, "ntask": ntask, "nacc": nacc,
+                "part": be.empty((4 * ntask * nacc * m,)), "cxy": be.empty((7 * p * m,)),
+                "nmean": be.empty((7 * m,)), "rc": be.empty((m,), np.int32),
+                "flags": be.empty((m,), np.int32)}
+
+    def launch_pass(self, inputs: dict[str, Any], out: Any) -> tuple[Any, Any]:
+        """The three launches of the frame pass (sums per (frame, row, lane); per-frame
+        gain; per-sample apply), everything already on the device; ``(rc, flags)``."""
+        be, n, m, cap = self.backend, self.n_samples, self._m, self.capacity
+        a, part, rc, flags = inputs["args"], inputs["part"], inputs["rc"], inputs["flags"]
+        ntask, nacc, spt = inputs["ntask"], inputs["nacc"], SAMPLES_PER_THREAD
+        rc[...] = 0
+        flags[...] = 0
+        be.launch("mk_d_joint_sums", 4 * ntask * m, (a, self._buf, _I64(cap), _I64(m),
                                                       _I32(ntask), _I32(nacc), part))
-        be.launch("mk_d_joint_gain", m, (abuf, self._buf, _I64(cap), _I64(m), _I32(nacc),
-                                         part, cxy, nmean, rc))
+        be.launch("mk_d_joint_gain", m, (a, self._buf, _I64(cap), _I64(m), _I32(nacc), part,
+                                         inputs["cxy"], inputs["nmean"], rc))
         be.launch("mk_d_joint_apply", m * ((n + spt - 1) // spt),
-                  (abuf, self._buf, _I64(cap), out, _I64(m), self._point, cxy, nmean, rc,
-                   _I32(spt), flags))
-        be.synchronize()  # the uploads above must outlive the launches
-        del dev, abuf
+                  (a, self._buf, _I64(cap), out, _I64(m), self._point, inputs["cxy"],
+                   inputs["nmean"], rc, _I32(spt), flags))
         return rc, flags
 
     def copy(self) -> DeviceComponent:
