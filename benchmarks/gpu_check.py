@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import importlib.machinery
 import importlib.util
 import json
 import os
@@ -55,7 +56,11 @@ def bootstrap() -> str:
     for p in (ROOT, ROOT / "clients", ROOT / "service"):
         if str(p) not in sys.path:
             sys.path.insert(0, str(p))
-    if os.environ.get("MCSM_KERNEL_LIBRARY") or importlib.util.find_spec("mcsm.core._kernel"):
+    spec = importlib.util.find_spec("mcsm")  # finds the package without importing it
+    core = Path(list(spec.submodule_search_locations or [])[0]) / "core" if spec else None
+    built = core is not None and any((core / f"_kernel{suffix}").exists()
+                                     for suffix in importlib.machinery.EXTENSION_SUFFIXES)
+    if os.environ.get("MCSM_KERNEL_LIBRARY") or built:
         return "mcsm: installed kernel"
     tree = ast.parse((ROOT / "setup.py").read_text())
     flags = next(ast.literal_eval(n.value) for n in tree.body if isinstance(n, ast.Assign)
