@@ -222,3 +222,30 @@ def test_gpu_check_without_a_gpu_says_so_and_exits_0(tmp_path: Path) -> None:
     rc, out = _gpu_check(tmp_path)
     assert rc == 0, out[-2000:]
     assert "no GPU here" in out
+
+
+def test_a_retraction_rebuilds_the_map_on_its_device(backend: emulation.EmulatedBackend) -> None:
+    """The retract window rebuilds a map from an in-memory snapshot: on the map's own device,
+    with the CPU's digest."""
+    from mcsm import wire
+    from mcsm.state import MapState
+
+    rng = np.random.default_rng(20261207)
+    n = 24
+    inputs = [(f"u{k}", f"p{k}", f"p{k + 1}", random_at(rng, n, kind="cloud", t_sigma=0.1))
+              for k in range(9)]
+    chain = StochasticMap(n)
+    for _, a, b, x in inputs:
+        chain.update(a, b, x)
+    x_loop = chain.query("p1", "p8")[rng.permutation(n)]
+    states = [MapState("default", StochasticMap(n, device=d), snapshot_every=3,
+                       snapshots_kept=10) for d in ("cpu", backend)]
+    for st in states:
+        for rid, a, b, x in inputs:
+            st.apply("update", wire.UpdateRequest(rid, a, b, x), time_ns=0)
+        st.apply("update", wire.UpdateRequest("loop", "p1", "p8", x_loop), time_ns=0)
+        before = st.digest()
+        st.apply("retract", wire.RetractRequest("r1", "u4"), time_ns=0)
+        assert st.digest() != before
+    assert states[1].map.device == "emulated"
+    assert states[1].digest() == states[0].digest()

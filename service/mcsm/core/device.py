@@ -168,6 +168,13 @@ class CudaBackend(Backend):
             raise DeviceMemoryExceeded(f"an allocation on {self.name}", need,
                                        self.free_bytes()) from None
 
+    def upload(self, host: npt.NDArray[Any]) -> Any:
+        try:  # one device allocation, filled from the host
+            return self._cupy.asarray(host)
+        except self._cupy.cuda.memory.OutOfMemoryError:
+            raise DeviceMemoryExceeded(f"an allocation on {self.name}", int(host.nbytes),
+                                       self.free_bytes()) from None
+
     def synchronize(self) -> None:
         self._cupy.cuda.Device().synchronize()
 
