@@ -18,13 +18,15 @@
 #include <stdint.h>
 #include <string.h>
 
+/* the shared per-sample functions on four samples at a time (kernel_common.h: mk_lane) */
+#define MK_LANE_VECTOR
 #include "kernel_common.h"
 
-typedef double v4 __attribute__((vector_size(32)));
+typedef mk_lane v4;
 
-static inline v4 ld4(const double *p) { v4 v; memcpy(&v, p, sizeof v); return v; }
+static inline v4 ld4(const double *p) { return mk_lane_load(p); }
 static inline double hsum(v4 v) { return mk_lanes(v[0], v[1], v[2], v[3]); }
-static inline v4 splat(double x) { v4 v = {x, x, x, x}; return v; }
+static inline v4 splat(double x) { return mk_lane_splat(x); }
 
 int mk_version(void) { return 2; }
 
@@ -701,7 +703,7 @@ int mk_endpoint_prep(const double *e_a, const double *e_b, long n, int point, co
 }
 
 /* mk_joint_args, the per-frame algebra (mk_joint_gain) and the per-sample apply step
- * (mk_joint_apply_sample) are in kernel_common.h, shared with the device kernel. */
+ * (mk_joint_apply) are in kernel_common.h, shared with the device kernel. */
 
 /* Moments of one row x against `m` centred rows r (m <= 12), with a shift s = x[0]:
  * S1 = sum(x - s), S2 = sum((x - s)^2), C[j] = sum((x - s) r_j), in four lanes (the step
@@ -753,18 +755,29 @@ static double row_cov_sum(const double *xa, const double *xb, long n) {
     return t;
 }
 
-/* the apply step over the samples of one frame (rows x -> rows o), specialised for each p so
- * that the compiler vectorises the loop over samples; the OR of the samples' flags */
+/* the apply step over the samples of one frame (rows x -> rows o), four samples at a time
+ * (mk_joint_apply on mk_lane vectors), specialised for each p; the last n % 4 samples go
+ * through the same function in a block of four padded with copies of the last sample (the
+ * lanes never mix, and a copy's flags are its original's). The OR of the samples' flags. */
 static inline __attribute__((always_inline)) int apply_rows_p(
         const double *restrict cxy, const double *restrict nmean, const int inflate,
         double lam, const int p, const double *restrict x, const double *restrict w, long n,
         double *restrict o) {
     int flags = 0;
-    for (long i = 0; i < n; i++) {
-        double xs[7], os[7];
-        for (int d = 0; d < 7; d++) xs[d] = x[d * n + i];
-        flags |= mk_joint_apply_sample(cxy, nmean, inflate, lam, p, xs, w + i, n, os);
-        for (int d = 0; d < 7; d++) o[d * n + i] = os[d];
+    long i = 0;
+    for (; i + MK_LANES <= n; i += MK_LANES)
+        flags |= mk_joint_apply(cxy, nmean, inflate, lam, p, x + i, n, w + i, n, o + i, n);
+    if (i < n) {
+        double xt[7 * MK_LANES], wt[MAXP * MK_LANES], ot[7 * MK_LANES];
+        for (int l = 0; l < MK_LANES; l++) {
+            long j = i + l < n ? i + l : n - 1;
+            for (int d = 0; d < 7; d++) xt[d * MK_LANES + l] = x[d * n + j];
+            for (int k = 0; k < p; k++) wt[k * MK_LANES + l] = w[k * n + j];
+        }
+        flags |= mk_joint_apply(cxy, nmean, inflate, lam, p, xt, MK_LANES, wt, MK_LANES, ot,
+                                MK_LANES);
+        for (long j = i; j < n; j++)
+            for (int d = 0; d < 7; d++) o[d * n + j] = ot[d * MK_LANES + (j - i)];
     }
     return flags;
 }

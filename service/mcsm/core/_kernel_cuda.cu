@@ -132,8 +132,8 @@ MK_KERNEL mk_d_joint_gain(const mk_joint_args *A, const double *buf, mk_i64 cap,
     for (int d = 0; d < 7; d++) nmean[(mk_i64)d * m + f] = nm[d];
 }
 
-/* Samples [i0, i1) of frame f: move, inflate, renormalise (mk_joint_apply_sample), pin a
- * point frame's quaternions; the OR of the samples' flags. */
+/* Samples [i0, i1) of frame f: move, inflate, renormalise (mk_joint_apply, one sample per
+ * call: MK_LANES is 1 here), pin a point frame's quaternions; the OR of the samples' flags. */
 template <int P>
 static __device__ __forceinline__ int apply_span(const mk_joint_args *A, const double *buf,
                                                  mk_i64 cap, double *out, mk_i64 m, mk_i64 f,
@@ -146,9 +146,9 @@ static __device__ __forceinline__ int apply_span(const mk_joint_args *A, const d
     int inflate = A->inflation != 1.0, flags = 0;
     double lam = A->inflation;
     for (mk_i64 i = i0; i < i1; i++) {
-        double xs[7], os[7];
-        for (int d = 0; d < 7; d++) xs[d] = AT(buf, cap, n, f, d, i);
-        flags |= mk_joint_apply_sample(cx, nm, inflate, lam, P, xs, A->w + i, n, os);
+        double os[7];
+        flags |= mk_joint_apply(cx, nm, inflate, lam, P, &AT(buf, cap, n, f, 0, i), n * cap,
+                                A->w + i, n, os, 1);
         if (point) mk_pin_sample(os + 3);
         for (int d = 0; d < 7; d++) AT(out, cap, n, f, d, i) = os[d];
     }
