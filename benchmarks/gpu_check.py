@@ -21,8 +21,14 @@ Sections, each guarded (one that fails is reported and the others still run):
    edges down, the weights up, the pass, the check), and the CPU kernel on one thread where
    ``--cpu-max-frames`` allows; the bandwidth counts 3 x 7 N M x 8 bytes (the sums read the
    component, the apply step reads and writes it);
-5. datasets, if time is left: Victoria Park and sphere2500 streamed into a CPU map and a GPU
+5. serve (``benchmarks/gpu_serve.py``): ``mcsm serve --device cuda`` as a subprocess, a map of
+   ``--serve-frames`` (100,000) frames built over Zenoh by acknowledged imports and joins,
+   then acknowledged loop closures per second from ``MapClient``s (the issue's >= 200/s
+   target), within ``--serve-budget-s``;
+6. datasets, if time is left: Victoria Park and sphere2500 streamed into a CPU map and a GPU
    map with the same samples: the same digest after every file (or after the prefix that fit).
+
+Every section is saved as soon as it ends, in this order: the bits first, then the timings.
 
 Exit status: 0 when every comparison that ran agreed (or when there is no GPU: it says so),
 1 when one differed, 2 on bad arguments. ``--emulate`` runs every section on the emulated
@@ -34,8 +40,7 @@ from __future__ import annotations
 
 import argparse
 import ast
-import importlib.machinery
-import importlib.util
+import importlib.metadata
 import json
 import os
 import platform
@@ -48,20 +53,41 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
+#: in the order they run (and are saved): the bits first, then the timings
+SECTIONS = ("environment", "bits", "replays", "timings", "serve", "datasets")
+
+
+def _source_package() -> Path:
+    """``mcsm`` laid out as pip installs it, made of links to this checkout: the package's
+    files and ``mcsm.schemas`` (which lives in ``schemas/``; the recorder of the serve
+    section reads its JSON Schemas as package data). The folder to put first on the path."""
+    site = Path(tempfile.mkdtemp(prefix="mcsm-site-"))
+    (site / "mcsm").mkdir()
+    for entry in (ROOT / "service" / "mcsm").iterdir():
+        if entry.name != "__pycache__":
+            (site / "mcsm" / entry.name).symlink_to(entry)
+    (site / "mcsm" / "schemas").symlink_to(ROOT / "schemas")
+    return site
 
 
 def bootstrap() -> str:
-    """Make ``mcsm`` importable from this checkout when it is not installed, building the
-    CPU kernel with setup.py's flags if needed; a line saying what was done."""
-    for p in (ROOT, ROOT / "clients", ROOT / "service"):
+    """Make ``mcsm`` importable from this checkout when it is not installed (for this
+    process and the ``mcsm serve`` it starts), building the CPU kernel with setup.py's flags
+    unless ``MCSM_KERNEL_LIBRARY`` names one; a line saying what was done."""
+    for p in (ROOT, ROOT / "clients"):  # tests.*, mcsm_client
         if str(p) not in sys.path:
             sys.path.insert(0, str(p))
-    spec = importlib.util.find_spec("mcsm")  # finds the package without importing it
-    core = Path(list(spec.submodule_search_locations or [])[0]) / "core" if spec else None
-    built = core is not None and any((core / f"_kernel{suffix}").exists()
-                                     for suffix in importlib.machinery.EXTENSION_SUFFIXES)
-    if os.environ.get("MCSM_KERNEL_LIBRARY") or built:
-        return "mcsm: installed kernel"
+    try:
+        importlib.metadata.version("mcsm")
+        return "mcsm: installed"
+    except importlib.metadata.PackageNotFoundError:
+        pass
+    site = _source_package()
+    sys.path.insert(0, str(site))
+    os.environ["PYTHONPATH"] = os.pathsep.join(
+        [str(site), str(ROOT / "clients"), str(ROOT), os.environ.get("PYTHONPATH", "")])
+    if os.environ.get("MCSM_KERNEL_LIBRARY"):
+        return f"mcsm: from {ROOT}, kernel {os.environ['MCSM_KERNEL_LIBRARY']}"
     tree = ast.parse((ROOT / "setup.py").read_text())
     flags = next(ast.literal_eval(n.value) for n in tree.body if isinstance(n, ast.Assign)
                  and getattr(n.targets[0], "id", "") == "KERNEL_FLAGS")
@@ -72,7 +98,7 @@ def bootstrap() -> str:
                     str(ROOT / "service/mcsm/core/_kernel.c"), "-o", str(lib)], check=True,
                    timeout=300)
     os.environ["MCSM_KERNEL_LIBRARY"] = str(lib)
-    return f"mcsm: CPU kernel built here ({' '.join(extra) or 'baseline'})"
+    return f"mcsm: from {ROOT}, CPU kernel built here ({' '.join(extra) or 'baseline'})"
 
 
 class Report:
@@ -434,10 +460,22 @@ def main(argv: list[str] | None = None) -> int:
                     help="time the CPU kernel up to this M (default 4000)")
     ap.add_argument("--bits-max-frames", type=int, default=4000,
                     help="compare every value of the timing passes up to this M")
+    ap.add_argument("--serve-frames", type=int, default=100_000,
+                    help="frames of the served map (default 100000)")
+    ap.add_argument("--serve-samples", type=int, default=1000,
+                    help="N of the served map (default 1000)")
+    ap.add_argument("--serve-clients", type=int, default=4,
+                    help="clients with a request in flight at once (default 4)")
+    ap.add_argument("--serve-seconds", type=float, default=5.0,
+                    help="seconds of loop closures per measurement (default 5)")
+    ap.add_argument("--serve-block-frames", type=int, default=128,
+                    help="frames per import (default 128: 7.2 MB at N = 1000)")
+    ap.add_argument("--serve-budget-s", type=float, default=120.0,
+                    help="the serve section's own time limit (default 120)")
     ap.add_argument("--dataset-samples", type=int, default=100)
     ap.add_argument("--max-constraints", type=int, default=None)
     ap.add_argument("--skip", nargs="*", default=[],
-                    choices=["environment", "bits", "replays", "timings", "datasets"])
+                    choices=list(SECTIONS))
     args = ap.parse_args(argv)
     t_start = time.perf_counter()
     deadline = t_start + args.budget_s
@@ -475,7 +513,7 @@ def main(argv: list[str] | None = None) -> int:
 
         be = backend_for("cuda")
     copy_bw = 0.0
-    for name in ("environment", "bits", "replays", "timings", "datasets"):
+    for name in SECTIONS:
         if name in args.skip:
             rep.say(f"\n## {name}: skipped (--skip)")
             continue
@@ -489,13 +527,20 @@ def main(argv: list[str] | None = None) -> int:
             elif name == "timings":
                 timings(rep, be, sizes, args.repeats, args.cpu_max_frames,
                         args.bits_max_frames, copy_bw, deadline)
+            elif name == "serve":
+                from gpu_serve import serve_section
+
+                serve_section(rep, be, args.emulate, args.serve_frames, args.serve_samples,
+                              max(1, args.serve_clients), args.serve_seconds,
+                              min(deadline, time.perf_counter() + args.serve_budget_s),
+                              max(2, args.serve_block_frames))
             else:
                 datasets(rep, be, args.data, args.dataset_samples, deadline,
                          args.max_constraints)
         except Exception as exc:
             rep.say(f"\n## {name}: FAILED to run: {type(exc).__name__}: {exc}")
             rep.data.setdefault("errors", []).append(traceback.format_exc())
-            if name in ("bits", "replays"):
+            if name in ("bits", "replays", "serve"):
                 rep.failed.append(f"{name} did not run")
         rep.save()
     verdict = "FAILED: " + ", ".join(rep.failed) if rep.failed else "every comparison agreed"

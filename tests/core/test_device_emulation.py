@@ -13,6 +13,7 @@ checks the PTX for fused multiply-adds) and that a real GPU runs it so
 from __future__ import annotations
 
 import ast
+import json
 import platform
 from pathlib import Path
 
@@ -200,15 +201,28 @@ def test_gpu_check_rehearses_every_section_on_the_emulated_device(tmp_path: Path
     """The script a GPU session runs once, unattended: every section runs and agrees here on
     the emulated device (small sizes), and its report files are written."""
     rc, out = _gpu_check(tmp_path, "--emulate", "--sizes", "40x50,24x1003", "--repeats", "2",
-                         "--max-constraints", "150", "--dataset-samples", "16")
+                         "--max-constraints", "150", "--dataset-samples", "16",
+                         "--serve-frames", "40", "--serve-samples", "16",
+                         "--serve-block-frames", "8", "--serve-seconds", "0.5")
     assert rc == 0, out[-3000:]
     assert "FAILED" not in out and "DIFFERENT" not in out and "DIVERGED" not in out
     assert out.count("identical") >= 20 + len(RECORDINGS) + 2
     assert "| 40 | 50 |" in out and "| 24 | 1003 |" in out
-    assert "every comparison agreed" in out
+    # the serve section: `mcsm serve --device cuda` built 40 frames from 5 imports and 4
+    # joins over Zenoh, and every measured update was an acknowledged loop closure
+    assert "built by 5 acknowledged imports" in out and "4 joins" in out
+    assert "40 frames in one component" in out
+    assert "info: 40 frames, 1 component(s), device emulated" in out
     report = (tmp_path / "gpu_check.txt").read_text()
-    assert "## timings" in report and "## bits" in report
-    assert (tmp_path / "gpu_check.json").stat().st_size > 100
+    sections = [line for line in report.splitlines() if line.startswith("## ")]
+    assert [line.split(":")[0] for line in sections] == \
+        ["## bits", "## the shipped recordings replayed on the device", "## timings",
+         "## serve", "## datasets"], sections  # the bits first, then the timings
+    data = json.loads((tmp_path / "gpu_check.json").read_text())
+    rates = data["serve"]["rates"]
+    assert [r["clients"] for r in rates] == [1, 4]
+    assert all(r["acked"] >= 1 and set(r["kinds"]) == {"loop_closure"} for r in rates)
+    assert data["serve"]["server_exit"] == 0
 
 
 def test_gpu_check_without_a_gpu_says_so_and_exits_0(tmp_path: Path) -> None:

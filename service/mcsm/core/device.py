@@ -232,10 +232,16 @@ class DeviceComponent:
     @classmethod
     def from_rows(cls, backend: Backend, frames: list[str], is_point: list[bool], rows: Array
                   ) -> DeviceComponent:
-        """Upload host edges ``(M, 7, N)`` (the CPU's rows layout)."""
-        host = np.ascontiguousarray(np.transpose(rows, (1, 2, 0)))
-        backend.reserve(host.nbytes + len(frames), "storing a component")
-        return cls(backend, frames, is_point, backend.upload(host))
+        """Upload host edges ``(M, 7, N)`` (the CPU's rows layout) as they are, then make them
+        frame-minor on the device (a copy; a transpose on the host costs more than the
+        upload)."""
+        rows = np.ascontiguousarray(rows)
+        backend.reserve(2 * rows.nbytes + len(frames), "storing a component")
+        staged = backend.upload(rows)
+        buf = backend.empty((7, rows.shape[2], rows.shape[0]))
+        buf[...] = backend.xp.transpose(staged, (1, 2, 0))
+        del staged
+        return cls(backend, frames, is_point, buf)
 
     def _flag_bytes(self, cap: int) -> npt.NDArray[np.uint8]:
         flags = np.zeros(cap, dtype=np.uint8)
