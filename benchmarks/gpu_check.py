@@ -232,17 +232,12 @@ def replays(rep: Report, be: Any) -> None:
 def _base(n: int, frames: int, seed: int) -> Any:
     """A real 3-D chain component of ``frames`` frames (CPU) and one loop closure on it."""
     import numpy as np
-    from mcsm import StochasticMap
+    from gpu_serve import chain
     from mcsm.core import joint
     from mcsm.core.storage import to_rows
 
-    from tests.helpers import random_at
-
-    rng = np.random.default_rng(seed)
-    m = StochasticMap(n, gate=None, threads=4)
-    for k in range(frames - 1):
-        m.update(f"p{k}", f"p{k + 1}", random_at(rng, n, kind="cloud", t_sigma=0.2,
-                                                  r_sigma=0.03))
+    m = chain(n, frames, seed, threads=4)
+    rng = np.random.default_rng(seed + 1)
     c = m._comps[m._where["p0"]]
     a, b = "p2", f"p{frames - 3}"
     x_rows = to_rows(m.query(a, b)[rng.permutation(n)])

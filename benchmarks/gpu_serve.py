@@ -48,19 +48,20 @@ EMULATED_CLI = ("import sys; from mcsm.core import device; "
 BIG = "1000000000"
 
 
-def _block(n: int, frames: int, seed: int) -> Any:
-    """One real 3-D chain component of ``frames`` frames (CPU), exported as a core Submap."""
+def chain(n: int, frames: int, seed: int, threads: int = 1) -> Any:
+    """A CPU map holding one real 3-D chain component ``p0 ... p{frames - 1}`` (odometry
+    clouds of 0.2 m and 0.03 rad)."""
     import numpy as np
     from mcsm import StochasticMap
 
     from tests.helpers import random_at
 
     rng = np.random.default_rng(seed)
-    m = StochasticMap(n, gate=None, threads=1)
+    m = StochasticMap(n, gate=None, threads=threads)
     for k in range(frames - 1):
         m.update(f"p{k}", f"p{k + 1}", random_at(rng, n, kind="cloud", t_sigma=0.2,
                                                   r_sigma=0.03))
-    return m.export_component("p0")
+    return m
 
 
 def _block_frames(n: int, most: int) -> int:
@@ -144,7 +145,7 @@ def serve_section(rep: Any, be: Any, emulate: bool, frames: int, n: int, clients
     out: dict[str, Any] = {"target_frames": frames, "n": n}
     rep.data["serve"] = out
     size = min(_block_frames(n, block_frames), frames)
-    block = _block(n, size, 20261207)
+    block = chain(n, size, 20261207).export_component("p0")
     rng = np.random.default_rng(20261208)
     steps = [random_at(rng, n, kind="cloud", t_sigma=0.2, r_sigma=0.03) for _ in range(8)]
     with tempfile.TemporaryDirectory(prefix="mcsm-gpu-serve-") as tmp:
