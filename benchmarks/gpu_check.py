@@ -1,10 +1,12 @@
 """The map on a GPU, checked once (issue 25): bits against the CPU kernel, the shipped
-recordings replayed on the device, the timing table, and two datasets' digests.
+recordings replayed on the device, the timing table, loop closures per second through
+``mcsm serve --device cuda`` over Zenoh, and two datasets' digests.
 
-Run once on a machine with an NVIDIA GPU, unattended, within about 4 minutes
-(benchmarks/results/README says how to prepare and where the output goes)::
+Run once on a machine with an NVIDIA GPU, unattended, within about 4 minutes; mcsm need not be
+installed there (benchmarks/results/README gives the wheels to carry, the one command and
+where the output goes)::
 
-    PYTHONPATH=service:clients:.:.gpu-carry/site python3 benchmarks/gpu_check.py \\
+    PYTHONPATH=service:clients:.:/tmp/site python3 benchmarks/gpu_check.py \\
         --out "$OUT" --data .gpu-carry/data
 
 Sections, each guarded (one that fails is reported and the others still run):

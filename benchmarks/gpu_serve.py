@@ -28,6 +28,7 @@ through a two-line wrapper that makes ``--device cuda`` mean the emulated backen
 
 from __future__ import annotations
 
+import gc
 import os
 import statistics
 import sys
@@ -141,6 +142,7 @@ def serve_section(rep: Any, be: Any, emulate: bool, frames: int, n: int, clients
     rep.say(f"\n## serve: `mcsm serve --device cuda` (a subprocess) over Zenoh, "
             f"{frames} frames, N = {n}")
     if not emulate:  # what this process still caches on the GPU goes back to the driver
+        gc.collect()
         be.xp.get_default_memory_pool().free_all_blocks()
     out: dict[str, Any] = {"target_frames": frames, "n": n}
     rep.data["serve"] = out
