@@ -33,9 +33,12 @@ class BuildKernel(build_ext):
 
 
 SOURCE = ["service/mcsm/core/_kernel.c"]
-KERNELS = [Extension("mcsm.core._kernel", SOURCE, extra_compile_args=KERNEL_FLAGS)]
+# the per-sample and per-frame arithmetic shared with the device kernel (_kernel_cuda.cu)
+DEPENDS = ["service/mcsm/core/kernel_common.h"]
+KERNELS = [Extension("mcsm.core._kernel", SOURCE, depends=DEPENDS,
+                     extra_compile_args=KERNEL_FLAGS)]
 if platform.machine().lower() in ("x86_64", "amd64"):
-    KERNELS.append(Extension("mcsm.core._kernel_avx2", SOURCE,
+    KERNELS.append(Extension("mcsm.core._kernel_avx2", SOURCE, depends=DEPENDS,
                              extra_compile_args=[*KERNEL_FLAGS, "-mavx2"]))
 
 setup(ext_modules=KERNELS, cmdclass={"build_ext": BuildKernel})

@@ -132,6 +132,10 @@ def build_parser() -> argparse.ArgumentParser:
                         f"and the ack's verdict says why (default {DEFAULT_GATE}: one wrong "
                         "closure wrecks a map, see docs/outliers.md; 'none' turns it off; a "
                         "request marked trusted bypasses it)")
+    s.add_argument("--device", default="cpu", metavar="cpu|cuda|cuda:K",
+                   help="where the maps keep their edges: 'cpu' (default) or 'cuda' (a GPU: "
+                        "the passes that grow with the map run there, same digests as on a "
+                        "CPU; needs the 'gpu' extra, CuPy; docs/kernel.md)")
     s.add_argument("--gate-defer", type=_defer, nargs="?", const=DEFAULT_EXPIRY, default=None,
                    metavar="K",
                    help="hold the first loop closure of a revisit as 'pending' until a second "
@@ -415,11 +419,14 @@ def serve(args: argparse.Namespace) -> int:
         snapshots_kept=max(1, args.snapshots_kept),
         disk_snapshot_every=max(0, args.disk_snapshot_every), standby_of=standby_of,
         sync_standbys=max(0, args.sync_standbys), sync_timeout_s=max(0.01, args.sync_timeout),
-        repl_log=max(1, args.repl_log),
+        repl_log=max(1, args.repl_log), device=args.device,
         gate_defer=None if args.gate_defer is None else DeferOptions(expiry=args.gate_defer))
     try:
         for name in [*opts.maps, *opts.standby_of]:
             wire.map_keys(name, opts.prefix)
+        if opts.device != "cpu":  # one clear line now, not a traceback at the first map
+            from mcsm.core.device import backend_for
+            backend_for(opts.device)
         conf = server_config(args.listen, args.zenoh_config, connect=args.connect)
     except (McsmError, zenoh.ZError, OSError) as exc:
         print(f"mcsm serve: {exc}", file=sys.stderr)

@@ -121,6 +121,16 @@ class Busy(LimitExceeded):
         super().__init__("request queue length", queue_length, limit)
 
 
+class DeviceMemoryExceeded(LimitExceeded):
+    """A map on a GPU (``device="cuda"``) would need more device memory than is free: the
+    request was refused before anything changed."""
+
+    def __init__(self, what: str, needed: int, free: int) -> None:
+        McsmError.__init__(
+            self, f"{what} needs {needed} bytes of device memory, {free} are free: refused, "
+            f"nothing changed", what=what, value=str(needed), limit=str(free))
+
+
 class RequestIdReused(McsmError):
     """A request id the server remembers was sent again with a *different* request.
 
@@ -218,7 +228,8 @@ _REGISTRY: dict[str, type[McsmError]] = {
     c.__name__: c
     for c in (McsmError, BadMessage, UnsupportedVersion, InvalidSamples, SampleCountMismatch,
               UnknownFrame, FrameExists, InvalidOperation, NotRelated, NumericalError,
-              LimitExceeded, Busy, RequestIdReused, Forbidden, NotReplicated, InternalError,
+              LimitExceeded, Busy, DeviceMemoryExceeded, RequestIdReused, Forbidden,
+              NotReplicated, InternalError,
               Timeout,
               NoServer, NoPermittedServer, Unreachable)
 }

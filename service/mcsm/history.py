@@ -127,7 +127,7 @@ class History:
         return e
 
     def rebuild(self, target: Logged, retract: bool, threads: int | None,
-                deferral: Deferral | None = None
+                deferral: Deferral | None = None, device: object = "cpu"
                 ) -> tuple[StochasticMap, dict[str, wire.Verdict], Callable[[], None],
                            Deferral | None]:
         """The map with ``target`` left out (``retract``) or put back, from the last snapshot
@@ -138,7 +138,7 @@ class History:
         nothing that leaves a half-changed window."""
         base = [s for s in self.snapshots if s[0] < target.seq]
         seq0, snap, defer0 = base[-1]
-        smap = StochasticMap.from_snapshot(snap, threads=threads)
+        smap = StochasticMap.from_snapshot(snap, threads=threads, device=device)
         dfr = None if deferral is None else deferral.copy(defer0 or DeferState())
         new_snaps = list(base)
         verdicts: dict[str, wire.Verdict | None] = {}  # request id -> its verdict now

@@ -749,9 +749,11 @@ class ReplayReport:
 def replay(path: str | os.PathLike[str], *, sink: Recorder | None = None,
            progress: Callable[[int, int], None] | None = None,
            lru_size: int = DEFAULT_LRU, server_id: str = "",
-           stop_after: int | None = None, from_snapshot: bool = False) -> ReplayReport:
+           stop_after: int | None = None, from_snapshot: bool = False,
+           device: object = "cpu") -> ReplayReport:
     """Rebuild every map of a recording and check its digests at every checkpoint and
-    snapshot.
+    snapshot. ``device``: where the rebuilt maps keep their edges (``StochasticMap``'s
+    argument; the digests are the same on every device).
 
     With ``from_snapshot`` (``mcsm serve --restore``), each map starts from its latest
     snapshot in the file (verified by its digest) and only the inputs after it are applied;
@@ -802,7 +804,7 @@ def replay(path: str | os.PathLike[str], *, sink: Recorder | None = None,
             if name in rep.states:
                 continue  # a map's config is written once; ignore repeats
             try:
-                smap = StochasticMap.from_options(dict(d["options"]))
+                smap = StochasticMap.from_options(dict(d["options"]), device=device)
                 defer = DeferOptions.from_dict(d.get("gate_defer"))  # absent: no deferral
             except (McsmError, KeyError, TypeError, ValueError) as exc:
                 raise RecordingError(str(path), f"bad options for map {name!r}: {exc}"
@@ -837,7 +839,8 @@ def replay(path: str | os.PathLike[str], *, sink: Recorder | None = None,
                 try:
                     snap = decode_snapshot(d["state"], st.n_samples)
                     dfr = d.get("deferral")
-                    st.restore(seq, StochasticMap.from_snapshot(snap), d.get("verdicts", {}),
+                    st.restore(seq, StochasticMap.from_snapshot(snap, device=device),
+                               d.get("verdicts", {}),
                                None if dfr is None else DeferState.decode(dfr, st.n_samples))
                 except (McsmError, KeyError, TypeError, ValueError) as exc:
                     raise RecordingError(str(path), f"unreadable snapshot of map {name!r} "

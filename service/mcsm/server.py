@@ -101,6 +101,9 @@ class ServerOptions:
     sync_timeout_s: float = DEFAULT_SYNC_TIMEOUT_S
     repl_log: int = DEFAULT_LOG_ENTRIES
     """Inputs per map kept in memory for standbys that catch up."""
+    device: str = "cpu"
+    """``--device``: where this server's maps keep their edges (``cpu`` or ``cuda``; not a
+    map option: digests are the same on every device). Standbys' maps stay on the CPU."""
 
 
 @dataclass
@@ -181,7 +184,7 @@ class Server:
             self.recorder = Recorder(o.record, fsync=o.fsync)
         if o.restore is not None:
             rep = replay(o.restore, sink=self.recorder, from_snapshot=True, progress=self._progress,
-                         lru_size=o.lru_size, server_id=self.server_id)
+                         lru_size=o.lru_size, server_id=self.server_id, device=o.device)
             if rep.divergence is not None:
                 if self.recorder is not None:  # it only holds a copy of the old file's prefix
                     self.recorder.close()
@@ -207,7 +210,7 @@ class Server:
                     log.warning("map %r: using the restored --gate-defer policy %s", name,
                                 None if dfr is None else dfr.options.to_dict())
                 continue
-            st = MapState(name, new_map(o.map_options), o.lru_size,
+            st = MapState(name, new_map(o.map_options, o.device), o.lru_size,
                           o.id_ttl_s, snapshot_every=o.snapshot_every,
                           snapshots_kept=o.snapshots_kept, gate_defer=o.gate_defer)
             self.states[name] = st
@@ -545,6 +548,7 @@ class Server:
     def info(self, st: MapState) -> wire.MapInfo:
         """The info reply of one map (call from the worker, or when nothing else runs)."""
         m = st.map
+        mem = m.memory()
         with self._reject_lock:
             rejected, by_error = st.rejected, dict(st.rejected_by_error)
         return wire.MapInfo(
@@ -557,7 +561,8 @@ class Server:
             queue_length=self._queue.qsize(),
             standbys=self.links[st.name].standbys() if st.name in self.links else {},
             sync_standbys=self.links[st.name].sync if st.name in self.links else 0,
-            epoch=self.links[st.name].epoch if st.name in self.links else 0)
+            epoch=self.links[st.name].epoch if st.name in self.links else 0,
+            device=m.device, device_bytes=mem["bytes"], device_free_bytes=mem.get("free", 0))
 
 
 def restore_summary(rep: Any) -> str:
@@ -578,12 +583,12 @@ def restore_summary(rep: Any) -> str:
     return "; ".join(parts) or "no map"
 
 
-def new_map(map_options: dict[str, Any]) -> StochasticMap:
+def new_map(map_options: dict[str, Any], device: str = "cpu") -> StochasticMap:
     """A new map from the constructor arguments ``map_options`` (``n_samples`` and keywords):
     what is not given takes the constructor's default (the gate's: 0.99). Recorded options go
     through :meth:`StochasticMap.from_options` instead, where a missing gate means none."""
     o = dict(map_options)
-    return StochasticMap(int(o.pop("n_samples")), **o)
+    return StochasticMap(int(o.pop("n_samples")), **o, device=device)
 
 
 def _source(query: zenoh.Query) -> str:

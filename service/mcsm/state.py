@@ -161,8 +161,9 @@ class MapState:
         before: dict[str, wire.Verdict | None] = {
             e.request_id: e.verdict for e in self.history.log if ops.get(e.op).retractable}
         held = None if self.deferral is None else self.deferral.pending_id()
-        smap, changed, commit, dfr = self.history.rebuild(target, retract, self.map.threads,
-                                                          self.deferral)
+        smap, changed, commit, dfr = self.history.rebuild(
+            target, retract, self.map.threads, self.deferral,
+            device="cpu" if self.map.backend is None else self.map.backend)
         self.map = smap
         self.deferral = dfr
         commit()

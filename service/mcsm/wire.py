@@ -589,6 +589,13 @@ class MapInfo:
     sync_standbys: int = field(default=0, metadata=wire_field(check_count, required=False))
     epoch: int = field(default=0, metadata=wire_field(check_count, required=False))
     """Takeovers behind this primary (0: started with ``--map``; docs/fleet.md)."""
+    device: str = field(default="cpu", metadata=wire_field(check_text(64), required=False))
+    """Where the map's edges live: ``cpu`` or ``cuda:K`` (``mcsm serve --device``)."""
+    device_bytes: int = field(default=0, metadata=wire_field(check_count, required=False))
+    """Bytes of the map's edges, flags and spare buffer where they live."""
+    device_free_bytes: int = field(default=0, metadata=wire_field(check_count,
+                                                                  required=False))
+    """On a GPU: device memory free when the info was taken (0 on the CPU)."""
 
     @property
     def n_frames(self) -> int:

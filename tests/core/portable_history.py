@@ -33,10 +33,12 @@ OPTION_SETS: dict[str, dict[str, object]] = {
 }
 
 
-def history(threads: int, **opts: object) -> str:
+def history(threads: int, device: object = "cpu", **opts: object) -> str:
+    """The digest of the scripted history; ``device``: where the maps keep their edges (the
+    device tests run it on the emulated GPU)."""
     rng = np.random.default_rng(20261123)
-    m = StochasticMap(N, threads=threads, **opts)  # type: ignore[arg-type]
-    side = StochasticMap(N, threads=threads, **opts)  # type: ignore[arg-type]
+    m = StochasticMap(N, threads=threads, device=device, **opts)  # type: ignore[arg-type]
+    side = StochasticMap(N, threads=threads, device=device, **opts)  # type: ignore[arg-type]
     for k in range(30):
         m.update(f"p{k}", f"p{k + 1}", random_at(rng, N, kind="cloud", t_sigma=0.2,
                                                   r_sigma=0.05))
@@ -60,7 +62,7 @@ def history(threads: int, **opts: object) -> str:
     return m.state_digest()
 
 
-def deferral_history(threads: int) -> str:
+def deferral_history(threads: int, device: object = "cpu") -> str:
     """A revisit under ``--gate-defer`` (the service's policy over the core): its closures are
     held, paired through the map's joint samples (the cycle test) and decided; the digest and
     every verdict's status and NIS."""
@@ -68,7 +70,7 @@ def deferral_history(threads: int) -> str:
     from mcsm.deferral import DeferOptions, Deferral
 
     rng = np.random.default_rng(20261124)
-    m = StochasticMap(N, threads=threads)
+    m = StochasticMap(N, threads=threads, device=device)
     dfr = Deferral(DeferOptions(expiry=6, revisit_gap=3), m.gate)
     statuses = []
 

@@ -21,6 +21,7 @@ import numpy.typing as npt
 
 from mcsm.core import joint
 from mcsm.core.at import check_samples
+from mcsm.core.device import backend_for
 from mcsm.core.forest import (
     Forest,
     RemoveResult,
@@ -31,7 +32,7 @@ from mcsm.core.forest import (
 )
 from mcsm.core.gate import chi2_quantile
 from mcsm.core.paper import paper_update, paper_update_tangent
-from mcsm.core.storage import to_rows
+from mcsm.core.storage import Component, to_rows
 from mcsm.errors import InvalidOperation, InvalidSamples
 
 Array = npt.NDArray[np.float64]
@@ -70,6 +71,11 @@ class StochasticMap(Forest):
         quantile for its dof is rejected (docs/outliers.md: why 0.99)
     threads : threads for the joint update's frame pass (default :func:`default_threads`).
         Not part of :meth:`options` or the state: every thread count gives the same bits.
+    device : ``"cpu"`` (default), ``"cuda"`` / ``"cuda:K"`` (the edges in GPU memory, the
+        passes that grow with the map run there: :mod:`mcsm.core.device`; needs the ``gpu``
+        extra, CuPy), or a :class:`mcsm.core.device.Backend` (the tests' emulated one). Not
+        part of :meth:`options` or the state: a map on a GPU has the same digests as on a CPU.
+        ``method="paper"`` runs on the CPU only.
     """
 
     def __init__(
@@ -84,6 +90,7 @@ class StochasticMap(Forest):
         gain: str = "direct",
         gate: float | None = DEFAULT_GATE,
         threads: int | None = None,
+        device: object = "cpu",
     ) -> None:
         if not isinstance(n_samples, int) or isinstance(n_samples, bool) or n_samples < 2:
             raise InvalidOperation(f"n_samples must be an integer >= 2, got {n_samples!r}")
@@ -111,7 +118,9 @@ class StochasticMap(Forest):
                                     or not 1 <= threads <= 64):
             raise InvalidOperation(f"threads must be None or an integer in [1, 64], "
                                    f"got {threads!r}")
-        super().__init__(n_samples)
+        if device != "cpu" and method == "paper":
+            raise InvalidOperation("method='paper' runs on the CPU only: use device='cpu'")
+        super().__init__(n_samples, backend_for(device))
         self.method: Method = method  # type: ignore[assignment]
         self.space = space
         self.analysis = analysis
@@ -124,6 +133,21 @@ class StochasticMap(Forest):
         self._spare: Array | None = None  # the buffer the last joint update replaced
 
     # ------------------------------------------------------------------ introspection
+    @property
+    def device(self) -> str:
+        """Where the map's edges live: ``cpu``, ``cuda:K`` or a test backend's name."""
+        return "cpu" if self.backend is None else self.backend.name
+
+    def memory(self) -> dict[str, Any]:
+        """The memory the map holds where its edges live: ``device`` (as :attr:`device`),
+        ``bytes`` (every component's edges and flags plus the loop closure's spare buffer)
+        and, on a GPU, ``free`` (bytes the device has free now)."""
+        spare = 0 if self._spare is None else int(self._spare.nbytes)
+        out: dict[str, Any] = {"device": self.device, "bytes": self.storage_bytes() + spare}
+        if self.backend is not None:
+            out["free"] = int(self.backend.free_bytes())
+        return out
+
     @property
     def nis_avg(self) -> float:
         """The running NIS average per dof that adaptive inflation steers by (1 at start)."""
@@ -148,14 +172,14 @@ class StochasticMap(Forest):
         return o
 
     @classmethod
-    def from_options(cls, options: dict[str, Any]) -> StochasticMap:
+    def from_options(cls, options: dict[str, Any], device: object = "cpu") -> StochasticMap:
         """Build an empty map from :meth:`options` output (as recorded). A missing ``gate``
         means no gate: the options of a map recorded before the gate's default changed, or
         of one without a gate (:meth:`options` leaves it out), rebuild that map."""
         o = dict(options)
         n = o.pop("n_samples")
         o.setdefault("gate", None)
-        return cls(int(n), **o)
+        return cls(int(n), **o, device=device)
 
     def _digest_header(self, h: Any) -> None:
         h.update(json.dumps(self.options(), sort_keys=True).encode())
@@ -168,8 +192,9 @@ class StochasticMap(Forest):
         return {"options": self.options(), "nis_avg": self._nis_avg, **super().snapshot()}
 
     @classmethod
-    def from_snapshot(cls, snap: dict[str, Any], threads: int | None = None) -> StochasticMap:
-        m = cls.from_options({**dict(snap["options"]), "threads": threads})
+    def from_snapshot(cls, snap: dict[str, Any], threads: int | None = None,
+                      device: object = "cpu") -> StochasticMap:
+        m = cls.from_options({**dict(snap["options"]), "threads": threads}, device=device)
         m.restore_snapshot(snap)
         m._nis_avg = float(snap["nis_avg"])
         return m
@@ -227,6 +252,8 @@ class StochasticMap(Forest):
         if verdict.status == "rejected":
             return UpdateResult("rejected", c.root, (), verdict)
         if self.method == "paper":
+            if not isinstance(c, Component):  # refused at construction
+                raise InvalidOperation("method='paper' runs on the CPU only")
             if self.space == "tangent":
                 self._comps[cid] = paper_update_tangent(
                     c, a, b, x_rows, point,
