@@ -14,6 +14,19 @@ help:
 
 # Re-install (and rebuild the compiled kernel) only when the packaging or the kernel source
 # changes; a second call costs nothing.
+# The first build takes a minute or more (downloads, the C kernel): each step says what it does
+# and pip shows what it fetches.
+$(STAMP): pyproject.toml setup.py service/mcsm/core/_kernel.c service/mcsm/core/kernel_common.h
+	@echo "make: setting up $(VENV) (once; about a minute the first time)"
+	@test -x $(PY) || { echo "make: [1/4] creating $(VENV)"; $(PYTHON) -m venv $(VENV); }
+	@echo "make: [2/4] upgrading pip"
+	@$(PY) -m pip install --quiet --upgrade pip
+	@echo "make: [3/4] installing mcsm with extras test, eval, viz, ros and building its C kernel"
+	@{ $(PY) -m pip install --progress-bar off -e '.[test,eval,viz,ros]'; echo $$? > $(VENV)/.rc; } \
+		| grep --line-buffered -E '^(Collecting|Building|Installing|Successfully)' || true
+	@test "$$(cat $(VENV)/.rc)" = 0 || { echo "make: pip install failed (see above)"; exit 1; }
+	@echo "make: [4/4] building tf2_msgs/TFMessage for mcsm ros2 (cached in ~/.cache/mcsm)"
+	@$(PY) -m mcsm_client.ros2.tf2 >/dev/null
 	@touch $(STAMP)
 	@echo "make: $(VENV) is ready"
 
