@@ -37,12 +37,16 @@ class MapState:
                  id_ttl_s: float = DEFAULT_ID_TTL_S, *,
                  snapshot_every: int = DEFAULT_SNAPSHOT_EVERY,
                  snapshots_kept: int = DEFAULT_SNAPSHOTS_KEPT,
-                 gate_defer: DeferOptions | None = None) -> None:
+                 gate_defer: DeferOptions | None = None,
+                 retract_window_bytes: int | None = None) -> None:
         self.name = name
         self.map = smap
         # --gate-defer: first closures of a revisit held until a second one agrees
         self.deferral = None if gate_defer is None else Deferral(gate_defer, smap.gate)
-        self.history = History(max(1, int(snapshot_every)), max(1, int(snapshots_kept)))
+        # --retract-window-bytes (None: unbounded, as in recordings made before the bound)
+        self.history = History(max(1, int(snapshot_every)), max(1, int(snapshots_kept)),
+                               None if retract_window_bytes is None
+                               else max(0, int(retract_window_bytes)))
         self.history.start(smap, 0, self._defer_state())
         # verdicts the last input changed: a retract's re-gated inputs, a decided held closure
         self.last_changed: dict[str, wire.Verdict] = {}
@@ -95,9 +99,11 @@ class MapState:
         return replace(ack, duplicate=True)
 
     def apply(self, op: str, req: Any, *, time_ns: int | None = None,
-              fingerprint: str | None = None) -> wire.Ack:
+              fingerprint: str | None = None, payload: bytes | None = None) -> wire.Ack:
         """Apply one decoded input received at ``time_ns``; returns its ack (seq ``seq + 1``).
-        ``fingerprint`` is ``ops.fingerprint(op, req)`` if the caller has it.
+        ``fingerprint`` is ``ops.fingerprint(op, req)`` if the caller has it; ``payload`` (the
+        request's bytes, as recorded) lets the retract window keep those instead of the
+        decoded request, and a split recording carry the window (:meth:`Recorder.snapshot`).
 
         Raises
         ------
@@ -141,7 +147,7 @@ class MapState:
         self._acks[req.request_id] = (ack, fp, t_ns)
         self._forget(t_ns)
         self.history.record(ack.seq, op, req.request_id, req, ack.verdict, self.map,
-                            self._defer_state())
+                            self._defer_state(), payload)
         return ack
 
     def _defer_state(self) -> DeferState | None:
@@ -157,6 +163,14 @@ class MapState:
     def _retract(self, op: str, req: Any, retract: bool) -> wire.Ack:
         """Leave the update ``req.target`` out (``retract``) or put it back (reinstate):
         restore the last snapshot before it and apply every later input of the window again."""
+        if req.target not in self.history.by_id:
+            hit = self._acks.get(req.target)
+            if hit is not None and hit[0].seq <= self.history.window_start:
+                raise InvalidOperation(
+                    f"request {req.target!r} (seq {hit[0].seq}) fell out of the retract "
+                    f"window, which now holds the inputs after seq "
+                    f"{self.history.window_start} ({self.history.reach()}): it can no longer "
+                    "be retracted or reinstated")
         target = self.history.target(req.target, retract)
         before: dict[str, wire.Verdict | None] = {
             e.request_id: e.verdict for e in self.history.log if ops.get(e.op).retractable}
@@ -185,11 +199,15 @@ class MapState:
         return wire.Ack(req.request_id, self.seq + 1, op, op, None, verdict=target.verdict)
 
     def restore(self, seq: int, smap: StochasticMap, verdicts: dict[str, int],
-                defer: DeferState | None = None) -> None:
-        """Continue from a recorded snapshot: the map as it was after operation ``seq``, and
-        the deferral state then (``--gate-defer``: the held closure, if any)."""
+                defer: DeferState | None = None, ids: list[list[Any]] | None = None) -> None:
+        """Continue from a recorded snapshot: the map as it was after operation ``seq``, the
+        deferral state then (``--gate-defer``: the held closure, if any) and, when the snapshot
+        holds them, the request ids remembered then (:meth:`export_ids` rows; they replace
+        the ids remembered so far)."""
         smap.threads = self.map.threads
         self.map, self.seq = smap, int(seq)
+        if ids is not None:
+            self.import_ids(ids, replace_all=True)
         self.verdicts = Counter({str(k): int(v) for k, v in verdicts.items()})
         if self.deferral is not None:
             self.deferral = self.deferral.copy(defer or DeferState())
@@ -219,8 +237,11 @@ class MapState:
         input applied before that snapshot is still recognised after a takeover)."""
         return [[rid, ack.seq, ack.op, fp, t] for rid, (ack, fp, t) in self._acks.items()]
 
-    def import_ids(self, rows: list[Any]) -> None:
-        """Remember the ids of :meth:`export_ids` (their acks say ``restored``)."""
+    def import_ids(self, rows: list[Any], *, replace_all: bool = False) -> None:
+        """Remember the ids of :meth:`export_ids` (their acks say ``restored``); with
+        ``replace_all``, instead of the ids remembered so far."""
+        if replace_all:
+            self._acks.clear()
         for row in rows:
             rid, seq, op, fp, t_ns = row
             self._acks.pop(str(rid), None)

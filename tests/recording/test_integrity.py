@@ -241,13 +241,17 @@ def test_recover_refuses_bad_paths_before_reading(files: dict[str, Path], tmp_pa
                                                   capsys: pytest.CaptureFixture[str]) -> None:
     existing = tmp_path / "exists.mcap"
     existing.write_bytes(b"keep me")
+    empty = tmp_path / "empty"
+    empty.mkdir()
     for argv, msg in [
             (["recover", str(tmp_path / "missing.mcap"), "-o", str(tmp_path / "o.mcap")],
              "no such file"),
             (["recover", str(files["full"]), "-o", str(existing)], "refusing to overwrite"),
             (["recover", str(files["full"]), "-o", str(files["full"] / "x.mcap")],
              "does not exist"),
-            (["recover", str(tmp_path), "-o", str(tmp_path / "o.mcap")], "is a directory")]:
+            # a directory names a split recording's files: one without any is refused
+            (["recover", str(empty), "-o", str(tmp_path / "o.mcap")],
+             "a directory without *.mcap files")]:
         assert mcsm_main(argv) == EXIT_USAGE
         err = capsys.readouterr().err
         assert msg in err and "Traceback" not in err
