@@ -456,6 +456,8 @@ class Recorder:
         ``--split-duration``). The check follows each input, so a file holds at least one
         input and ends at a clean close; the next file starts with every map's config and a
         snapshot (with the remembered ids and the retract window), so it replays on its own.
+        A file is never split before its inputs take as many bytes as the snapshots it
+        starts with, so snapshots never take more than half of a split recording.
         The files share a set id and count up (the ``mcsm`` metadata's ``set`` and
         ``set_index``), which is how readers order a set and find gaps (:mod:`mcsm.recset`).
 
@@ -521,6 +523,7 @@ class Recorder:
             meta.update({"set": self.set_id, "set_index": str(self.index)})
         self._w.add_metadata("mcsm", meta)
         self._w.flush()
+        self._start_size = self._size()  # grows by the snapshots a split file starts with
 
     def _add(self, topic: str, obj: dict[str, Any], publish_ns: int, seq: int) -> None:
         data = wire.pack({"v": wire.VERSION, **obj})
@@ -604,7 +607,10 @@ class Recorder:
     def _split_due(self) -> bool:
         if not self.splitting:
             return False
-        if self.split_bytes and self._size() >= self.split_bytes:
+        size = self._size()
+        if size - self._start_size < self._start_size:  # fewer input bytes than snapshots
+            return False
+        if self.split_bytes and size >= self.split_bytes:
             return True
         return bool(self.split_s) and time.monotonic() - self._opened >= self.split_s
 
@@ -625,6 +631,7 @@ class Recorder:
             self._add(TOPIC_CONFIG, {**rec, "time_ns": time.time_ns()}, time.time_ns(), 0)
         for st in self._states.values():
             self.snapshot(st, reason="split")
+        self._start_size = self._size()
         log.info("recording continues in %s (file %d of set %s)", self.path, self.index,
                  self.set_id)
 
