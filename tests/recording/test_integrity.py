@@ -193,6 +193,22 @@ def test_replay_says_what_it_verified(files: dict[str, Path], kind: str, code: i
     assert js["exit_code"] == code and js["identical"] == (kind == "full")
 
 
+@pytest.mark.parametrize("kind,code,word", [
+    ("full", EXIT_OK, ""), ("cut", EXIT_CUT, "CUT (no clean close)"),
+    ("flipped", EXIT_DAMAGED, "DAMAGED: bad chunk")])
+def test_cat_prints_what_it_can_then_exits_cut_or_damaged(
+        files: dict[str, Path], kind: str, code: int, word: str,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """Exit codes 4 and 5 of ``cat`` (docs/recordings.md): the inputs before the cut or the
+    damage are printed, then one line on stderr says why it stopped."""
+    assert mcsm_main(["cat", str(files[kind]), "--json"]) == code
+    out, err = capsys.readouterr()
+    seqs = [json.loads(line)["seq"] for line in out.splitlines()]
+    assert seqs == list(range(1, len(seqs) + 1))
+    assert (len(seqs) == 12) == (kind == "full") and (kind == "full" or len(seqs) >= 5)
+    assert word in err and "Traceback" not in err
+
+
 def test_a_divergence_on_a_complete_file_does_not_call_it_cut(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     path = tmp_path / "bad.mcap"

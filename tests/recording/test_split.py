@@ -158,6 +158,8 @@ def test_sets_with_a_gap_or_mixed_files_are_refused_by_name(
     assert mcsm_main(["recover", str(a[0]), str(b[1]), "-o", str(tmp_path / "out")]) \
         == EXIT_USAGE
     assert "mixed set" in capsys.readouterr().err and not (tmp_path / "out").exists()
+    assert mcsm_main(["serve", "--restore", str(a[0]), str(a[2])]) == EXIT_USAGE
+    assert "--restore: " in capsys.readouterr().err
     # a set read as a set by every command (the set in order, from a directory)
     assert mcsm_main(["replay", str(tmp_path / "a"), "--no-progress"]) == 0
     assert mcsm_main(["inspect", str(tmp_path / "a")]) == 0
