@@ -9,7 +9,7 @@ The live server and replay (:func:`mcsm.recording.replay`) both apply inputs thr
 from __future__ import annotations
 
 import time
-from collections import Counter, OrderedDict
+from collections import Counter
 from dataclasses import replace
 from typing import Any
 
@@ -18,9 +18,11 @@ from mcsm.core.smap import StochasticMap
 from mcsm.deferral import DeferOptions, Deferral, DeferState
 from mcsm.errors import InvalidOperation, McsmError, RequestIdReused
 from mcsm.history import DEFAULT_SNAPSHOT_EVERY, DEFAULT_SNAPSHOTS_KEPT, History
+from mcsm.idmemory import IdMemory
 
 DEFAULT_LRU = 100_000
-"""Request ids (with their acks) each map remembers at most (about 60 MB at most)."""
+"""Request ids (with their acks) each map remembers at most (about 25 MB at most:
+:mod:`mcsm.idmemory`)."""
 DEFAULT_ID_TTL_S = 600.0
 """Seconds a request id is remembered (ten minutes: a server restart takes 1-8 s)."""
 
@@ -55,7 +57,7 @@ class MapState:
         self.lru_size = int(lru_size)
         self.id_ttl_s = float(id_ttl_s)
         # request id -> (ack, request fingerprint, receive time ns), oldest first
-        self._acks: OrderedDict[str, tuple[wire.Ack, str, int]] = OrderedDict()
+        self._acks = IdMemory()
         self.rejected = 0
         self.rejected_by_error: Counter[str] = Counter()
         self.verdicts: Counter[str] = Counter()  # applied updates per verdict status
@@ -70,11 +72,11 @@ class MapState:
     def _forget(self, now_ns: int) -> None:
         """Drop ids older than ``id_ttl_s`` and beyond ``lru_size`` (oldest first)."""
         cutoff = now_ns - int(self.id_ttl_s * 1e9)
-        while self._acks:
-            _, (_, _, t_ns) = next(iter(self._acks.items()))
-            if t_ns >= cutoff and len(self._acks) <= self.lru_size:
+        while True:
+            t_ns = self._acks.oldest_time()
+            if t_ns is None or (t_ns >= cutoff and len(self._acks) <= self.lru_size):
                 break
-            self._acks.popitem(last=False)
+            self._acks.pop_oldest()
 
     def lookup(self, request_id: str, fingerprint: str | None = None,
                now_ns: int | None = None) -> wire.Ack | None:
@@ -142,9 +144,8 @@ class MapState:
             raise McsmError(f"{op!r} changes nothing: it is answered, not applied")
         self.seq = ack.seq
         t_ns = time.time_ns() if time_ns is None else int(time_ns)
-        self._acks.pop(req.request_id, None)
         fp = fingerprint if fingerprint is not None else ops.fingerprint(op, req)
-        self._acks[req.request_id] = (ack, fp, t_ns)
+        self._acks.put(req.request_id, ack, fp, t_ns)
         self._forget(t_ns)
         self.history.record(ack.seq, op, req.request_id, req, ack.verdict, self.map,
                             self._defer_state(), payload)
@@ -158,7 +159,7 @@ class MapState:
         for rid, v in verdicts.items():
             hit = self._acks.get(rid)
             if hit is not None:
-                self._acks[rid] = (replace(hit[0], verdict=v), hit[1], hit[2])
+                self._acks.update(rid, replace(hit[0], verdict=v))
 
     def _retract(self, op: str, req: Any, retract: bool) -> wire.Ack:
         """Leave the update ``req.target`` out (``retract``) or put it back (reinstate):
@@ -217,9 +218,11 @@ class MapState:
                                  stamp_ns=h.req.stamp_ns)
                 hit = self._acks.get(h.request_id)
                 if hit is None:  # its input is not in this file (a restored server's file)
-                    hit = (wire.Ack(h.request_id, h.seq, "update", "pending", None),
-                           ops.fingerprint("update", h.req), time.time_ns())
-                self._acks[h.request_id] = (replace(hit[0], verdict=v), hit[1], hit[2])
+                    self._acks.put(h.request_id, wire.Ack(h.request_id, h.seq, "update",
+                                                          "pending", None, verdict=v),
+                                   ops.fingerprint("update", h.req), time.time_ns())
+                else:
+                    self._acks.update(h.request_id, replace(hit[0], verdict=v))
         self.history.start(smap, self.seq, self._defer_state())
         self._digest = None
 
@@ -227,8 +230,7 @@ class MapState:
         """Remember the id of an input applied before a snapshot replay started from (so a
         retry of it is not applied twice); its ack is not known, only its seq and op."""
         ack = wire.Ack(req.request_id, int(seq), op, "restored", None)
-        self._acks.pop(req.request_id, None)
-        self._acks[req.request_id] = (ack, ops.fingerprint(op, req), int(time_ns))
+        self._acks.put(req.request_id, ack, ops.fingerprint(op, req), int(time_ns))
         self._forget(int(time_ns))
 
     def export_ids(self) -> list[list[Any]]:
@@ -244,11 +246,10 @@ class MapState:
             self._acks.clear()
         for row in rows:
             rid, seq, op, fp, t_ns = row
-            self._acks.pop(str(rid), None)
-            self._acks[str(rid)] = (wire.Ack(str(rid), int(seq), str(op), "restored", None),
-                                    str(fp), int(t_ns))
+            self._acks.put(str(rid), wire.Ack(str(rid), int(seq), str(op), "restored", None),
+                           str(fp), int(t_ns))
         while len(self._acks) > self.lru_size:
-            self._acks.popitem(last=False)
+            self._acks.pop_oldest()
 
     def verdict_of(self, request_id: str) -> wire.Ack:
         """The ack (with its current verdict) of a remembered request id.

@@ -313,3 +313,29 @@ def test_reads_go_first_and_the_queue_is_bounded_in_bytes() -> None:
         q.put(k, read=True)
     with pytest.raises(Full, match="request queue length"):
         q.put("one more", read=True)
+
+
+def test_the_id_memory_keeps_order_acks_and_verdicts_compactly() -> None:
+    from mcsm.idmemory import IdMemory
+
+    m = IdMemory()
+    v = wire.Verdict("accepted", 1.5, 6, 12.59, "", 7)
+    for k in range(5):
+        m.put(f"i{k}", wire.Ack(f"i{k}", k + 1, "update", "new_frame", "r",
+                                frames_added=(f"f{k}",), verdict=v), f"{k:032x}", 100 + k)
+    m.put("i1", wire.Ack("i1", 9, "remove", "remove", None, frames_removed=("f1",)), "", 200)
+    m.pop("i3")
+    m.update("i0", wire.Ack("i0", 1, "update", "new_frame", "r", verdict=None))
+    assert [rid for rid, _ in m.items()] == ["i0", "i2", "i4", "i1"] and len(m) == 4
+    ack, fp, t = m.get("i2")  # type: ignore[misc]
+    assert ack == wire.Ack("i2", 3, "update", "new_frame", "r", frames_added=("f2",), verdict=v)
+    assert (fp, t) == (f"{2:032x}", 102)
+    assert m.get("i1") == (wire.Ack("i1", 9, "remove", "remove", None,
+                                    frames_removed=("f1",)), "", 200)
+    assert m.oldest_time() == 100
+    m.pop_oldest()
+    m.pop_oldest()
+    assert m.oldest_time() == 104 and "i0" not in m and m.get("i3") is None
+    m.pop_oldest()
+    m.pop_oldest()
+    assert len(m) == 0 and m.oldest_time() is None and list(m.items()) == []
