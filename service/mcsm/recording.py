@@ -590,7 +590,7 @@ class Recorder:
             "map": state.name, "seq": state.seq, "digest": state.digest(),
             "format": SNAPSHOT_FORMAT, "reason": reason, "verdicts": dict(state.verdicts),
             "deferral": (None if state.deferral is None else state.deferral.state.encode()),
-            "ids": encode_ids(state.export_ids()),
+            "ids": encode_ids(state.id_columns()),
             "state": encode_snapshot(state.map.snapshot())}
         if first and state.history.window_start < state.seq:
             window = encode_window(state.history)

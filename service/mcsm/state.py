@@ -18,7 +18,7 @@ from mcsm.core.smap import StochasticMap
 from mcsm.deferral import DeferOptions, Deferral, DeferState
 from mcsm.errors import InvalidOperation, McsmError, RequestIdReused
 from mcsm.history import DEFAULT_SNAPSHOT_EVERY, DEFAULT_SNAPSHOTS_KEPT, History
-from mcsm.idmemory import IdMemory
+from mcsm.idmemory import IdColumns, IdMemory
 
 DEFAULT_LRU = 100_000
 """Request ids (with their acks) each map remembers at most (about 25 MB at most:
@@ -57,7 +57,7 @@ class MapState:
         self.lru_size = int(lru_size)
         self.id_ttl_s = float(id_ttl_s)
         # request id -> (ack, request fingerprint, receive time ns), oldest first
-        self._acks = IdMemory()
+        self._acks = IdMemory(self.lru_size)
         self.rejected = 0
         self.rejected_by_error: Counter[str] = Counter()
         self.verdicts: Counter[str] = Counter()  # applied updates per verdict status
@@ -238,6 +238,11 @@ class MapState:
         time_ns]`` rows (a standby that starts from a snapshot imports them, so a retry of an
         input applied before that snapshot is still recognised after a takeover)."""
         return [[rid, ack.seq, ack.op, fp, t] for rid, (ack, fp, t) in self._acks.items()]
+
+    def id_columns(self) -> IdColumns:
+        """The remembered ids, oldest first, as columns (:meth:`IdMemory.columns`): what a
+        recorded snapshot holds (:func:`mcsm.carry.encode_ids`)."""
+        return self._acks.columns()
 
     def import_ids(self, rows: list[Any], *, replace_all: bool = False) -> None:
         """Remember the ids of :meth:`export_ids` (their acks say ``restored``); with

@@ -318,7 +318,7 @@ def test_reads_go_first_and_the_queue_is_bounded_in_bytes() -> None:
 def test_the_id_memory_keeps_order_acks_and_verdicts_compactly() -> None:
     from mcsm.idmemory import IdMemory
 
-    m = IdMemory()
+    m = IdMemory(10)
     v = wire.Verdict("accepted", 1.5, 6, 12.59, "", 7)
     for k in range(5):
         m.put(f"i{k}", wire.Ack(f"i{k}", k + 1, "update", "new_frame", "r",
@@ -339,3 +339,15 @@ def test_the_id_memory_keeps_order_acks_and_verdicts_compactly() -> None:
     m.pop_oldest()
     m.pop_oldest()
     assert len(m) == 0 and m.oldest_time() is None and list(m.items()) == []
+    # at capacity the oldest goes; a long row (a submap import's frames) lives aside
+    many = tuple(f"frame{k}" for k in range(40))
+    for k in range(25):
+        m.put(f"j{k}", wire.Ack(f"j{k}", k, "import", "import", "r", frames_added=many),
+              "", k)
+    assert len(m) == 10 and [r for r, _ in m.items()] == [f"j{k}" for k in range(15, 25)]
+    assert m.get("j20")[0].frames_added == many  # type: ignore[index]
+    m.put("k", wire.Ack("k", 99, "update", "new_frame", "r"), f"{7:032x}", 99)
+    rows = m.columns().rows()
+    assert rows[0] == ["j16", 16, "import", "", 16] and rows[-1] == ["k", 99, "update",
+                                                                      f"{7:032x}", 99]
+    assert [r[0] for r in rows] == [f"j{k}" for k in range(16, 25)] + ["k"]
