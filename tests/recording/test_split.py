@@ -168,6 +168,9 @@ def test_sets_with_a_gap_or_mixed_files_are_refused_by_name(
     seqs = [int(line.split('"seq": ')[1].split(",")[0])
             for line in capsys.readouterr().out.splitlines()]
     assert seqs == list(range(1, 81))
+    png = tmp_path / "a.png"
+    assert mcsm_main(["plot", *map(str, a[1:]), "-o", str(png), "--at", "50"]) == 0
+    assert "at seq 50 of 80" in capsys.readouterr().out and png.stat().st_size > 10_000
     assert mcsm_main(["recover", str(tmp_path / "a"), "-o", str(tmp_path / "rec")]) == 0
     assert sorted(p.name for p in (tmp_path / "rec").iterdir()) == [p.name for p in a]
     assert replay(sorted((tmp_path / "rec").iterdir())).identical
