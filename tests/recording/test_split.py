@@ -354,3 +354,24 @@ def test_the_id_memory_keeps_order_acks_and_verdicts_compactly() -> None:
     assert rows[0] == ["j16", 16, "import", "", 16] and rows[-1] == ["k", 99, "update",
                                                                       f"{7:032x}", 99]
     assert [r[0] for r in rows] == [f"j{k}" for k in range(16, 25)] + ["k"]
+
+
+def test_restore_starts_early_enough_for_a_retraction_after_the_latest_snapshot(
+        tmp_path: Path) -> None:
+    """A retract recorded after the latest disk snapshot of an update from before it: the
+    restore starts from an earlier snapshot (from the latest, the target is out of reach and
+    the restore used to fail with 'replay diverged')."""
+    path = tmp_path / "r.mcap"
+    rec = Recorder(path)
+    dr = Driver(rec, _state(), seed=7107, disk_every=10)
+    rec.config(dr.st, 5)
+    for k in range(22):  # disk snapshots at seq 10 and 20
+        dr.update(k)
+    dr.send("retract", wire.encode_retract("r-late", "u15"))  # u15 is seq 16: before 20
+    rec.close()
+    fast = replay(path, from_snapshot=True)
+    assert fast.identical, fast.divergence
+    assert fast.snapshots_loaded == 1 and fast.n_skipped == 10 and fast.n_inputs == 13
+    assert fast.states["default"].digest() == dr.st.digest()
+    hit = fast.states["default"].lookup("u3")
+    assert hit is not None and hit.duplicate
