@@ -12,10 +12,10 @@ what exactly-once and ``retract`` need to go on as if nothing had happened:
   times (binary columns, no per-id object when written), so that a retry of any of them is
   answered ``duplicate`` after a restore, however many restores or split files lie in
   between, and ``--id-ttl-s`` still counts from the original receive time;
-* ``window`` (the first snapshot of each map in a file, when the map's retract window reaches
-  back before it): the window's snapshots and logged requests (:func:`encode_window`), so that
-  a file replayed alone, or a server restored from it, can retract exactly what the live
-  server could.
+* ``window`` (in a snapshot its file starts from, a split or a restored file's, when the
+  map's retract window reaches back before it): the window's snapshots and logged requests
+  (:func:`encode_window`), so that a file replayed alone, or a server restored from it, can
+  retract exactly what the live server could.
 """
 
 from __future__ import annotations

@@ -530,6 +530,7 @@ class Recorder:
         self._file_open = True
         self.paths.append(path)
         self._snap_seq: dict[str, int] = {}  # map -> seq of its last snapshot in this file
+        self._has_inputs: set[str] = set()  # maps with an input in this file
         self._opened = time.monotonic()
         self._w = _new_writer(self._fh, self.layout, f"mcsm {__version__}", path.parent)
         self._channels: dict[str, int] = {}
@@ -591,6 +592,7 @@ class Recorder:
                                      "request": bytes(payload)}, recv_ns, seq)
         self._flush(self._fsync)
         self.n_inputs += 1
+        self._has_inputs.add(map_name)
         if self._split_due():
             self.split()
 
@@ -601,11 +603,12 @@ class Recorder:
 
     def snapshot(self, state: MapState, reason: str = "periodic") -> None:
         """Record ``state``'s whole map (versioned, with its digest and seq), the request ids
-        it remembers and, in the map's first snapshot of this file, its retract window when
-        that reaches back before it (:mod:`mcsm.carry`); flush it. ``--restore`` starts from
+        it remembers and, when the file starts from this snapshot (a split file's first
+        record, a restored server's first), its retract window if that reaches back before it
+        (:mod:`mcsm.carry`); flush it. ``--restore`` starts from
         the latest one plus the inputs after it. A second snapshot of the same seq in one
         file is skipped (a split's first snapshot and a periodic one can coincide)."""
-        first = state.name not in self._snap_seq
+        first = state.name not in self._snap_seq and state.name not in self._has_inputs
         if self._snap_seq.get(state.name) == state.seq:
             return
         now = time.time_ns()

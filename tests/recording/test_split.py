@@ -120,8 +120,12 @@ def test_a_split_recording_replays_as_a_set_and_file_by_file(tmp_path: Path) -> 
     assert set(retracted_across) <= carried
     assert replay(paths[1:]).states["default"].digest() == final
     # --restore from the set: only the files from the latest usable snapshot on are read
-    fast = replay(paths, from_snapshot=True)
+    sink = Recorder(tmp_path / "restored.mcap")
+    fast = replay(paths, from_snapshot=True, sink=sink)
+    sink.close()
     assert fast.identical and fast.states["default"].digest() == final
+    again = replay(tmp_path / "restored.mcap")  # the restored server's file, alone
+    assert again.identical and again.states["default"].digest() == final
     assert fast.files and fast.files[-1] == str(paths[-1]) and len(fast.files) < len(paths)
     st2 = fast.states["default"]
     for op, rid, payload in dr.sent:  # every id of every file is remembered
@@ -186,11 +190,16 @@ def test_ids_survive_restore_after_restore_with_their_receive_times(tmp_path: Pa
     for k in range(25):
         dr.update(k)
     rec.close()  # (as after a SIGKILL: no close checkpoint)
+    snaps = [r.data for r in RecordingReader(tmp_path / "one.mcap") if r.topic == "/mcsm/snapshot"]
+    assert len(snaps) == 2 and all("ids" in d and "window" not in d for d in snaps)
     k = 25
     for name, src in (("two.mcap", "one.mcap"), ("three.mcap", "two.mcap")):
         sink = Recorder(tmp_path / name)
         rep = replay(tmp_path / src, sink=sink, from_snapshot=True, id_ttl_s=3600)
         assert rep.identical and rep.snapshots_loaded == 1
+        first = next(r.data for r in RecordingReader(tmp_path / name)
+                     if r.topic == "/mcsm/snapshot")
+        assert first["seq"] in (20, 30) and "window" not in first  # (restored: no window yet)
         dr.rec, dr.st = sink, rep.states["default"]
         for _ in range(12):  # the restored server goes on (a disk snapshot at 30 and 40)
             dr.update(k)
