@@ -115,10 +115,12 @@ class LimitExceeded(McsmError):
 
 
 class Busy(LimitExceeded):
-    """The server's request queue is full: nothing was applied; retry later with the same id."""
+    """The server's request queue is full (by count, or by bytes of queued requests: ``what``
+    says which): nothing was applied; retry later with the same id."""
 
-    def __init__(self, queue_length: int, limit: int) -> None:
-        super().__init__("request queue length", queue_length, limit)
+    def __init__(self, queue_length: int, limit: int,
+                 what: str = "request queue length") -> None:
+        super().__init__(what, queue_length, limit)
 
 
 class DeviceMemoryExceeded(LimitExceeded):

@@ -9,6 +9,7 @@ are exercised against the same server.
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
 import time
@@ -137,6 +138,20 @@ def test_cli_timeout_exit_code_and_help() -> None:
     r = subprocess.run([sys.executable, "-m", "mcsm_client.cli", "play", "--help"],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 0 and "--bounded" in r.stdout
+
+
+def test_cli_interrupted_exit_code(server: ServerProcess) -> None:
+    """Exit code 130 (README, ``mcsm-client --help``): Ctrl-C (SIGINT) during a command."""
+    p = subprocess.Popen([sys.executable, "-m", "mcsm_client.cli", "watch", "--connect",
+                          server.endpoint], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         text=True)
+    assert p.stderr is not None
+    line = p.stderr.readline()  # "watching map 'default' (Ctrl-C to stop)": it is running
+    assert "watching map" in line, line
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=30)
+    assert p.returncode == 130, err
+    assert "interrupted" in err and "Traceback" not in err
 
 
 def test_demo_end_to_end_small(tmp_path: Path) -> None:

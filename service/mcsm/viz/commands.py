@@ -26,7 +26,9 @@ def add_parsers(sub: Any) -> None:
                        description="Replay a recording and draw one map: landmarks with 95 % "
                                    "covariance ellipses, pose frames and their path, one "
                                    "colour per component.")
-    p.add_argument("file", type=Path, help="recording (.mcap) written by mcsm serve")
+    p.add_argument("file", type=Path, nargs="+",
+                   help="recording (.mcap) written by mcsm serve; a split recording's files "
+                        "(several paths, a directory or a pattern, docs/recordings.md)")
     p.add_argument("-o", "--output", type=Path, default=Path("map.png"), metavar="PNG",
                    help="output image (default map.png)")
     p.add_argument("--map", default=None, metavar="NAME",
@@ -135,16 +137,19 @@ def _check_output(path: Path, overwrite: bool = False) -> None:
 
 
 def _plot(args: argparse.Namespace) -> int:
+    from mcsm.recset import resolve
     from mcsm.viz import require
     from mcsm.viz.scene import load_map, map_view, read_truth
 
-    _check_input(args.file)
+    files = resolve(args.file)
+    for f in files:
+        _check_input(f)
     _check_output(args.output, overwrite=args.force)
     require("matplotlib")  # before the replay: a missing extra is said at once
     truth = read_truth(args.truth) if args.truth is not None else None
     from mcsm.viz.plot import plot_map
 
-    loaded = load_map(args.file, args.map, args.at)
+    loaded = load_map(files, args.map, args.at)
     mv = map_view(loaded.map, map_name=loaded.name, seq=loaded.seq, samples=args.samples)
     mv.notes = loaded.notes
     for note in loaded.notes:

@@ -15,6 +15,7 @@ from __future__ import annotations
 import csv
 import math
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, cast
@@ -226,26 +227,49 @@ class ReplaySink:
             self.history.reset(state.map)
 
 
-def recording_maps(path: str | os.PathLike[str]) -> dict[str, list[int]]:
-    """Map names of a recording and, for each, the running input count (all maps together)
-    after each of its inputs: ``counts[name][s - 1]`` inputs bring map ``name`` to seq ``s``.
+def recording_maps(path: str | os.PathLike[str] | Sequence[str | os.PathLike[str]]
+                   ) -> dict[str, list[int]]:
+    """Map names of a recording (one file, or a split recording's files in order) and, for
+    each, the running input count (all maps together) after each of its inputs:
+    ``counts[name][s - 1 - base]`` inputs bring map ``name`` to seq ``s``, where ``base`` is
+    :func:`recording_bases`' (0 unless the recording starts from a snapshot).
 
     Reads records only (no arithmetic). Raises ``RecordingError`` if the file is unreadable.
     """
+    return _scan(path)[0]
+
+
+def recording_bases(path: str | os.PathLike[str] | Sequence[str | os.PathLike[str]]
+                    ) -> dict[str, int]:
+    """Per map, the seq before its first input in the recording (0, or the seq of the snapshot
+    a restored or split file starts from)."""
+    return _scan(path)[1]
+
+
+def _scan(path: str | os.PathLike[str] | Sequence[str | os.PathLike[str]]
+          ) -> tuple[dict[str, list[int]], dict[str, int]]:
     from mcsm.recording import TOPIC_CONFIG, TOPIC_OPS, RecordingReader
 
+    paths = [path] if isinstance(path, (str, os.PathLike)) else list(path)
     counts: dict[str, list[int]] = {}
+    bases: dict[str, int] = {}
     n_inputs = 0
-    for item in RecordingReader(path):
-        name = item.data.get("map")
-        if not isinstance(name, str):
-            continue
-        if item.topic == TOPIC_CONFIG:
-            counts.setdefault(name, [])
-        elif item.topic in TOPIC_OPS:
-            n_inputs += 1
-            counts.setdefault(name, []).append(n_inputs)
-    return counts
+    for p in paths:
+        reader = RecordingReader(p)
+        for item in reader:
+            name = item.data.get("map")
+            if not isinstance(name, str):
+                continue
+            if item.topic == TOPIC_CONFIG:
+                counts.setdefault(name, [])
+            elif item.topic in TOPIC_OPS:
+                n_inputs += 1
+                if name not in bases:
+                    bases[name] = int(item.data.get("seq", 1)) - 1
+                counts.setdefault(name, []).append(n_inputs)
+        if not reader.complete:
+            break
+    return counts, bases
 
 
 def choose_map(names: list[str], wanted: str | None, path: str) -> str:
@@ -261,8 +285,8 @@ def choose_map(names: list[str], wanted: str | None, path: str) -> str:
     raise McsmError(f"{path} holds maps {', '.join(names)}: choose one with --map")
 
 
-def load_map(path: str | os.PathLike[str], map_name: str | None = None,
-             at_seq: int | None = None) -> LoadedMap:
+def load_map(path: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
+             map_name: str | None = None, at_seq: int | None = None) -> LoadedMap:
     """Replay a recording (``mcsm.recording.replay``) up to seq ``at_seq`` of one map.
 
     Parameters
@@ -279,16 +303,18 @@ def load_map(path: str | os.PathLike[str], map_name: str | None = None,
     """
     from mcsm.recording import replay
 
-    counts = recording_maps(path)
-    name = choose_map(list(counts), map_name, str(path))
-    last_seq = len(counts[name])
+    counts, bases = _scan(path)
+    label = str(path) if isinstance(path, (str, os.PathLike)) else ", ".join(map(str, path))
+    name = choose_map(list(counts), map_name, label)
+    base = bases.get(name, 0)
+    last_seq = base + len(counts[name])
     stop_after = None
     if at_seq is not None:
-        if not 1 <= at_seq <= last_seq:
-            raise McsmError(f"map {name!r} of {path} has sequence numbers 1..{last_seq}, "
-                            f"not {at_seq}")
+        if not base + 1 <= at_seq <= last_seq:
+            raise McsmError(f"map {name!r} of {label} has sequence numbers "
+                            f"{base + 1}..{last_seq}, not {at_seq}")
         # every input of every map up to this map's input number at_seq
-        stop_after = counts[name][at_seq - 1]
+        stop_after = counts[name][at_seq - base - 1]
     sink = ReplaySink(name)
     rep = replay(path, stop_after=stop_after, sink=cast(Any, sink))
     notes = []
