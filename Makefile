@@ -13,7 +13,7 @@ help:
 
 # Re-install (and rebuild the compiled kernel) only when the packaging or the kernel source
 # changes; a second call costs nothing.
-$(STAMP): pyproject.toml setup.py service/mcsm/core/_kernel.c
+$(STAMP): pyproject.toml setup.py $(wildcard service/mcsm/core/_*.c service/mcsm/core/_*.h)
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e '.[test,eval,viz]'
