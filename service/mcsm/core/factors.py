@@ -63,13 +63,12 @@ class Table:
         return self.n - 1
 
     def keep(self, mask: npt.NDArray[np.bool_]) -> None:
-        """Keep the rows where ``mask`` is true (in order)."""
-        for k, a in self._data.items():
-            kept = a[: self.n][mask]
-            b = np.zeros((max(4, len(kept)), *a.shape[1:]), dtype=a.dtype)
-            b[: len(kept)] = kept
-            self._data[k] = b
-        self.n = int(np.count_nonzero(mask))
+        """Keep the rows where ``mask`` is true (in order), in place: the capacity stays, so a
+        history at its bound reuses its memory instead of allocating it again."""
+        rows = np.flatnonzero(mask)
+        for a in self._data.values():
+            a[: len(rows)] = a[rows]
+        self.n = len(rows)
 
     def to_plain(self) -> dict[str, Any]:
         return {"n": self.n, **{k: np.ascontiguousarray(self[k]).astype(

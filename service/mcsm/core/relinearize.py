@@ -305,7 +305,33 @@ def marginalise(smap: StochasticMap) -> int:
         s = mine[: max(1, (len(mine) + 3) // 4)]
         _marginalise_set(smap, h, cid, s)
         gone += len(s)
+    _trim_heap()
     return gone
+
+
+def _trim_heap() -> None:
+    """Give the C heap's free pages back to the system after a marginalisation (glibc keeps
+    the solve's freed blocks otherwise, and a bounded map would not stay a bounded process)."""
+    if _LIBC is not None:
+        _LIBC.malloc_trim(0)
+
+
+def _libc() -> Any:
+    import ctypes
+    import ctypes.util
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        libc.malloc_trim.argtypes = [ctypes.c_size_t]
+        return libc
+    except (OSError, AttributeError):  # not glibc
+        return None
+
+
+_LIBC = _libc()
 
 
 def _marginalise_set(smap: StochasticMap, h: FactorHistory, cid: int,
