@@ -31,7 +31,7 @@ import numpy.typing as npt
 from mcsm.core import kernel, relin
 from mcsm.core.factors import IDENTITY, FactorHistory, Prior
 from mcsm.core.gate import chi2_quantile
-from mcsm.errors import InvalidOperation, NumericalError
+from mcsm.errors import InvalidOperation, McsmError, NumericalError
 
 if TYPE_CHECKING:
     from mcsm.core.smap import StochasticMap
@@ -281,10 +281,18 @@ def relinearize_component(smap: StochasticMap, cid: int) -> ComponentRelin:
 
 
 def relinearize(smap: StochasticMap, cids: list[int], trigger: str) -> RelinReport:
-    """Relinearise components ``cids`` in order; the report."""
+    """Relinearise components ``cids`` in order; the report. A component whose solve fails is
+    left as it was and reported as skipped (never raised: an automatic relinearisation runs
+    after its update was applied)."""
     t0 = time.perf_counter()
-    comps = tuple(relinearize_component(smap, cid) for cid in cids)
-    return RelinReport(trigger, comps, time.perf_counter() - t0)
+    comps = []
+    for cid in cids:
+        try:
+            comps.append(relinearize_component(smap, cid))
+        except McsmError as exc:
+            comps.append(ComponentRelin(smap._comps[cid].root,
+                                        skipped=f"failed: {type(exc).__name__}: {exc}"))
+    return RelinReport(trigger, tuple(comps), time.perf_counter() - t0)
 
 
 def marginalise(smap: StochasticMap) -> int:
@@ -303,7 +311,13 @@ def marginalise(smap: StochasticMap) -> int:
         cid = int(h.vars["group"][removed[0]])
         mine = removed[h.vars["group"][removed] == cid]
         s = mine[: max(1, (len(mine) + 3) // 4)]
-        _marginalise_set(smap, h, cid, s)
+        root = h.var_of.get(smap._comps[cid].root)
+        if root is None or h.vars["kind"][root] != 0:
+            break  # a component rooted at a point anchors no prior: over the bound for now
+        try:
+            _marginalise_set(smap, h, cid, s)
+        except McsmError:  # never raised out of an applied update; tried again next time
+            break
         gone += len(s)
     _trim_heap()
     return gone

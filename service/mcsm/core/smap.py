@@ -397,14 +397,13 @@ class StochasticMap(Forest):
         """Relinearise ``frame``'s component, or every component (oldest first): solve for
         the maximum a posteriori estimate of everything it has seen and redraw its samples
         around it with the posterior's joint covariance (:mod:`mcsm.core.relinearize`).
-        Components that cannot be (an imported submap, no history) are reported as skipped.
+        Components that cannot be (an imported submap, no history) or whose solve fails (then
+        unchanged) are reported as skipped, with the reason.
 
         Raises
         ------
         UnknownFrame
             If ``frame`` is not in the map.
-        NumericalError
-            If the solve fails (the map is then unchanged).
         """
         cids = [self._cid(frame)] if frame is not None else sorted(self._comps)
         return relinearize(self, cids, "request")
