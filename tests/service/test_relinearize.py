@@ -8,12 +8,15 @@ fed the same inputs (and, for the retraction, without the retracted one).
 
 from __future__ import annotations
 
+import json
 import signal
 from pathlib import Path
 
 import numpy as np
+import pytest
 from mcsm import StochasticMap
 from mcsm.recording import replay
+from mcsm_client.cli import main as client_main
 from mcsm_client.client import MapClient
 
 from tests.service.daemon_util import Daemon, noisy_at, start_daemon, start_router, wait_for
@@ -95,7 +98,7 @@ def _fresh(ops: list[Op], skip: str = "") -> StochasticMap:
 
 
 def test_retract_replay_and_restore_through_relinearisations(
-        tmp_path: Path, daemons: list[Daemon]) -> None:
+        tmp_path: Path, daemons: list[Daemon], capsys: pytest.CaptureFixture[str]) -> None:
     ops = _inputs(np.random.default_rng(20261210))
     d = start_daemon(tmp_path, *OPTS)
     daemons.append(d)
@@ -130,8 +133,11 @@ def test_retract_replay_and_restore_through_relinearisations(
     daemons.append(d2)
     with MapClient(connect=d2.endpoint, timeout_s=20.0) as c:
         assert c.info().digest == final.digest
-        c.relinearize(request_id="after-restore")
-        local.relinearize()
+        # the command line: mcsm-client relinearize [FRAME] prints what the ack says
+        assert client_main(["relinearize", "p1", "--json", "--connect", d2.endpoint]) == 0
+        out = json.loads(capsys.readouterr().out)
+        assert out["kind"] == "relinearize" and out["relin"]["components"][0]["frames"] >= 10
+        local.relinearize("p1")
         assert c.info().digest == local.state_digest()
     assert d2.stop(signal.SIGINT) == 0, d2.log_text()
     assert replay(d2.record).identical
