@@ -31,6 +31,7 @@ import numpy.typing as npt
 from mcsm.core import kernel, relin
 from mcsm.core.factors import IDENTITY, FactorHistory, Prior
 from mcsm.core.gate import chi2_quantile
+from mcsm.core.storage import Component, to_rows
 from mcsm.errors import InvalidOperation, McsmError, NumericalError
 
 if TYPE_CHECKING:
@@ -149,17 +150,32 @@ def _key(h: FactorHistory, cid: int) -> int:
             + cid * 0x94D049BB133111EB + 0x2545F4914F6CDD1D) & _MASK
 
 
-def estimates(smap: StochasticMap, h: FactorHistory, cid: int, ids: npt.NDArray[np.int64]
-              ) -> Array:
+def host_rows(smap: StochasticMap, cid: int) -> tuple[Array, npt.NDArray[np.uint8]]:
+    """Component ``cid``'s edges as host rows ``(M, 7, N)`` (a copy) and its point flags: the
+    only way this module reads a component, whatever memory it lives in."""
+    c = smap._comps[cid]
+    return to_rows(c.edges()), np.array(c.point_list(), dtype=np.uint8)
+
+
+def replace_rows(smap: StochasticMap, cid: int, rows: Array) -> None:
+    """Component ``cid`` with the same frames and the edges ``rows`` (host, ``(M, 7, N)``):
+    the only way this module writes one."""
+    c = smap._comps[cid]
+    smap._comps[cid] = Component(list(c.frames), c.point_list(), rows)
+    smap._spare = None
+
+
+def estimates(smap: StochasticMap, h: FactorHistory, cid: int, ids: npt.NDArray[np.int64],
+              rows: Array, flags: npt.NDArray[np.uint8]) -> Array:
     """Estimates of variables ``ids`` (of group ``cid``) in its root's frame: the map's means
-    for frames it holds, the recorded ones for removed frames."""
+    for frames it holds (from its host ``rows``), the recorded ones for removed frames."""
     c = smap._comps[cid]
     kind = h.vars["kind"][ids]
     x = relin.transform(h.groups[cid].world, h.vars["est"][ids], kind, invert=True)
     alive = np.flatnonzero(h.vars["alive"][ids])
     if len(alive):
         idx = np.array([c.index[h.frame_of[int(v)]] for v in ids[alive]], dtype=np.int64)
-        x[alive] = relin.means(c.buffer, idx, c.point_flags[idx])
+        x[alive] = relin.means(rows, idx, flags[idx])
     root = h.var_of.get(c.root)
     if root is not None:
         x[ids == root] = IDENTITY
@@ -180,16 +196,15 @@ def _trim_thresholds(robust: npt.NDArray[np.uint8], w: Array, kind: npt.NDArray[
     return out
 
 
-def active_coordinates(smap: StochasticMap, cid: int) -> tuple[int, int]:
+def active_coordinates(rows: Array, flags: npt.NDArray[np.uint8]) -> tuple[int, int]:
     """Bit masks of the pose (x y z rx ry rz) and point (x y z) coordinates in which some frame
-    of component ``cid`` other than its root varies: the others (a planar map's z, qx, qy;
-    rotations an input never let vary) are held, as the filter holds them."""
-    c = smap._comps[cid]
-    idx = np.arange(1, len(c), dtype=np.int64)
-    sp = relin.spread(c.buffer, idx, c.point_flags[idx])
+    of a component (host ``rows``, root first) other than its root varies: the others (a planar
+    map's z, qx, qy; rotations an input never let vary) are held, as the filter holds them."""
+    idx = np.arange(1, len(rows), dtype=np.int64)
+    sp = relin.spread(rows, idx, flags[idx])
     masks = []
     for point, width in ((False, 6), (True, 3)):
-        sel = c.point_flags[idx].astype(bool) == point
+        sel = flags[idx].astype(bool) == point
         live = np.any(sp[sel] > 0.0, axis=0)[:width] if np.any(sel) else np.ones(width, bool)
         masks.append(int(sum(1 << k for k in range(width) if live[k])))
     return masks[0], masks[1]
@@ -198,6 +213,7 @@ def active_coordinates(smap: StochasticMap, cid: int) -> tuple[int, int]:
 def _problem(smap: StochasticMap, h: FactorHistory, cid: int, ids: npt.NDArray[np.int64],
              fmask: npt.NDArray[np.bool_], priors: list[Prior], kept: npt.NDArray[np.uint8]
              ) -> relin.Problem:
+    rows, flags = host_rows(smap, cid)
     local = np.full(h.vars.n, -1, dtype=np.int64)
     local[ids] = np.arange(len(ids))
     root = h.var_of[smap._comps[cid].root]
@@ -210,14 +226,14 @@ def _problem(smap: StochasticMap, h: FactorHistory, cid: int, ids: npt.NDArray[n
         pdata.append(block)
         pdoff.append(pdoff[-1] + len(block))
         prows.append(p.r.shape[0])
-    pose_active, point_active = active_coordinates(smap, cid)
+    pose_active, point_active = active_coordinates(rows, flags)
     return relin.Problem(
         pose_active=pose_active, point_active=point_active,
         ftrim=_trim_thresholds(h.factors["robust"][fmask], h.factors["w"][fmask],
                                h.factors["kind"][fmask]),
         vkind=np.ascontiguousarray(h.vars["kind"][ids], dtype=np.int32),
         vfixed=(ids == root).astype(np.uint8), vkept=kept,
-        x=estimates(smap, h, cid, ids),
+        x=estimates(smap, h, cid, ids, rows, flags),
         fkind=np.ascontiguousarray(h.factors["kind"][fmask], dtype=np.int32),
         fvars=np.ascontiguousarray(fv), fz=np.ascontiguousarray(h.factors["z"][fmask]),
         fw=np.ascontiguousarray(h.factors["w"][fmask]),
@@ -265,14 +281,14 @@ def relinearize_component(smap: StochasticMap, cid: int) -> ComponentRelin:
         alive = np.flatnonzero(kept)
         slot[alive] = [c.index[h.frame_of[int(v)]] for v in ids[alive]]
         slot[ids == h.var_of[c.root]] = -1
-        out = c.buffer.copy()
+        out, flags = host_rows(smap, cid)
         sol.redraw(out, slot, _key(h, cid))
         st = sol.stats
     m = len(c)
-    if kernel.canonicalize_frames(out, c.point_flags, 1, m, False) != kernel.OK or \
-            not np.isfinite(out[:m]).all():
+    if kernel.canonicalize_frames(out, flags, 1, m, False) != kernel.OK or \
+            not np.isfinite(out).all():
         raise NumericalError("the relinearisation produced non-finite samples")
-    smap._spare = c.swap_buffer(out)
+    replace_rows(smap, cid, out)
     h.vars["est"][ids] = relin.transform(h.groups[cid].world, prob.x, prob.vkind)
     h.groups[cid].since = 0
     h.n_relin += 1

@@ -323,11 +323,16 @@ class StochasticMap(Forest):
         """Mean poses of ``frames`` of component ``cid`` in its group's world frame."""
         h = self.factor_history
         assert h is not None
+        return relin.transform(h.groups[cid].world, self._edge_means(cid, frames),
+                               np.array([self.is_point(f) for f in frames], dtype=np.int32))
+
+    def _edge_means(self, cid: int, frames: list[str]) -> Array:
+        """Mean poses (root frame) of ``frames`` of component ``cid``, from host copies."""
         c = self._comps[cid]
-        idx = np.array([c.index[f] for f in frames], dtype=np.int64)
-        flags = c.point_flags[idx]
-        kinds = flags.astype(np.int32)
-        return relin.transform(h.groups[cid].world, relin.means(c.buffer, idx, flags), kinds)
+        rows = np.stack([np.asarray(c.edge_rows(c.index[f]), dtype=np.float64)
+                         for f in frames])
+        flags = np.array([c.is_point(c.index[f]) for f in frames], dtype=np.uint8)
+        return relin.means(rows, np.arange(len(frames), dtype=np.int64), flags)
 
     def _record(self, h: FactorHistory, cid: int, a: str, b: str, point: bool, kind: str,
                 verdict: Verdict, zw: tuple[Array, Array], join: tuple[int, int, str] | None
@@ -362,9 +367,7 @@ class StochasticMap(Forest):
         ids = h.group_vars(cid2)
         kinds = h.vars["kind"][ids]
         in_root2 = relin.transform(g2.world, h.vars["est"][ids], kinds, invert=True)
-        c = self._comps[cid1]
-        m = relin.means(c.buffer, np.array([c.index[old_root]], dtype=np.int64),
-                        c.point_flags[[c.index[old_root]]])[0]
+        m = self._edge_means(cid1, [old_root])[0]
         in_root1 = relin.transform(m, in_root2, kinds)
         h.merge_groups(cid1, cid2, relin.transform(g1.world, in_root1, kinds))
 
