@@ -40,9 +40,9 @@ if TYPE_CHECKING:
 Array = npt.NDArray[np.float64]
 
 DEFAULT_HISTORY_BYTES = 8 * 2**20
-"""The history's default bound: about 30,000 inputs with their frames (Victoria Park: 10,600
-inputs, 3.1 MB; city10000: 20,700 edges, 5.7 MB), small enough that a long-running bounded map
-stays a bounded server."""
+"""The history's default bound: about 30,000 inputs with their frames (Victoria Park: 10,608
+inputs, 2.8 MB; city10000: 20,687 edges and 10,000 poses, 5.6 MB), small enough that a
+long-running bounded map stays a bounded server."""
 REGATE_WINDOW = 8
 """Gated closures over which :attr:`Policy.regate` counts failures."""
 MAX_ITERATIONS = 20
