@@ -16,7 +16,7 @@ help:
 # changes; a second call costs nothing.
 # The first build takes a minute or more (downloads, the C kernel): each step says what it does
 # and pip shows what it fetches.
-$(STAMP): pyproject.toml setup.py service/mcsm/core/_kernel.c service/mcsm/core/kernel_common.h
+$(STAMP): pyproject.toml setup.py $(wildcard service/mcsm/core/_*.c service/mcsm/core/*.h)
 	@echo "make: setting up $(VENV) (once; about a minute the first time)"
 	@test -x $(PY) || { echo "make: [1/4] creating $(VENV)"; $(PYTHON) -m venv $(VENV); }
 	@echo "make: [2/4] upgrading pip"

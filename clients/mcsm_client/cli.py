@@ -133,6 +133,14 @@ def build_parser() -> argparse.ArgumentParser:
         s.add_argument("--json", action="store_true")
         _add_common(s)
 
+    s = sub.add_parser("relinearize", help="bring a component (or every component) back to the "
+                       "maximum a posteriori estimate of its recorded inputs and redraw its "
+                       "samples (admin)")
+    s.add_argument("frame", nargs="?", default="",
+                   help="a frame of the component (default: every component)")
+    s.add_argument("--json", action="store_true")
+    _add_common(s)
+
     s = sub.add_parser("audit", help="run GTSAM's GNC over a map's recorded inputs and retract "
                        "or reinstate where it disagrees with the map (eval extra)",
                        description="Read the recorded inputs of a map (the server's MCAP "
@@ -278,7 +286,8 @@ def _ack_dict(ack: Any) -> dict[str, Any]:
             "component": ack.component,
             "frames_added": list(ack.frames_added), "frames_removed": list(ack.frames_removed),
             "duplicate": ack.duplicate,
-            "verdict": ack.verdict.to_dict() if ack.verdict is not None else None}
+            "verdict": ack.verdict.to_dict() if ack.verdict is not None else None,
+            "relin": ack.relin}
 
 
 def _ack_text(ack: Any) -> str:
@@ -479,6 +488,21 @@ def cmd_retract(args: argparse.Namespace) -> int:
     verdict = (f" verdict={ack.verdict.status}" if ack.verdict is not None
                and f"verdict={ack.verdict.status}" not in _ack_text(ack) else "")
     _print(args, _ack_dict(ack), f"{_ack_text(ack)} target={args.request_id}{verdict}")
+    return EXIT_OK
+
+
+def cmd_relinearize(args: argparse.Namespace) -> int:
+    """``relinearize``: one component (or every one) back to its maximum a posteriori estimate."""
+    with _client(args) as c:
+        ack = c.relinearize(args.frame)
+    rel = ack.relin or {}
+    parts = [f"{d['root']}: " + (f"skipped ({d['skipped']})" if d["skipped"] else
+                                 f"{d['frames']} frames, {d['variables']} variables, "
+                                 f"{d['factors']} factors, {d['iterations']} iterations, "
+                                 f"cost {d['cost_before']:.6g} -> {d['cost_after']:.6g}")
+             for d in rel.get("components", [])]
+    _print(args, _ack_dict(ack), _ack_text(ack) + f" time={rel.get('time_s', 0.0):.3f}s; "
+           + ("; ".join(parts) or "no component"))
     return EXIT_OK
 
 
@@ -791,6 +815,7 @@ def cmd_multirobot(args: argparse.Namespace) -> int:
 
 COMMANDS = {"info": cmd_info, "update": cmd_update, "query": cmd_query, "remove": cmd_remove,
             "retract": cmd_retract, "reinstate": cmd_retract, "verdict": cmd_verdict,
+            "relinearize": cmd_relinearize,
             "servers": cmd_servers, "audit": cmd_audit,
             "watch": cmd_watch, "play": cmd_play, "play-rosbag": cmd_play_rosbag, "sim": cmd_sim,
             "multirobot": cmd_multirobot}

@@ -435,6 +435,18 @@ class MapClient:
                                       target, sender=self.sender)
         return ack
 
+    def relinearize(self, frame: str = "", *, request_id: str | None = None,
+                    timeout_s: float | None = None) -> wire.Ack:
+        """Relinearise ``frame``'s component (empty: every component): the map solves for the
+        maximum a posteriori estimate of every input it recorded and redraws the component's
+        samples from the posterior. Recorded and acknowledged like an update; ``ack.relin``
+        says what it did (per component: frames, variables, factors, iterations, cost before
+        and after, or why it was skipped; the time it held the worker). Admin only under the
+        shipped access control."""
+        ack: wire.Ack = self._request("relinearize", f"relinearize {frame or 'all'}", timeout_s,
+                                      request_id, frame, sender=self.sender)
+        return ack
+
     def verdict(self, target: str, *, timeout_s: float | None = None) -> wire.Verdict | None:
         """The current verdict of a past request (None for a remove or an import)."""
         ack: wire.Ack = self._request("verdict", f"verdict {target}", timeout_s, None, target)

@@ -4,6 +4,8 @@
 
     mcsm serve [--listen tcp/127.0.0.1:7457] [--map NAME]... [--samples N]
                [--method joint|paper] [--gate Q|none] [--gate-defer [K]]
+               [--gate-scale W:T:S|none] [--history BYTES|none] [--relinearize-nis Q|none]
+               [--relinearize-every K|none] [--relinearize-gap K] [--relinearize-regate K|none]
                [--record PATH.mcap] [--restore PATH.mcap] [--zenoh-config FILE]
                [--connect ENDPOINT]... [--standby-of MAP]... [--sync-standbys K]
     mcsm router --listen ENDPOINT
@@ -44,7 +46,8 @@ from pathlib import Path
 from typing import Any
 
 from mcsm import ops, wire
-from mcsm.core.smap import DEFAULT_GATE
+from mcsm.core.relinearize import DEFAULT_HISTORY_BYTES, Policy
+from mcsm.core.smap import DEFAULT_GATE, DEFAULT_GATE_SCALE, DEFAULT_POLICY
 from mcsm.deferral import DEFAULT_EXPIRY, DeferOptions
 from mcsm.errors import McsmError
 
@@ -146,6 +149,30 @@ def build_parser() -> argparse.ArgumentParser:
                         "one agrees with it through the map's joint samples, then apply both; "
                         f"after K updates (default {DEFAULT_EXPIRY}) it goes through the gate "
                         "alone (default off; docs/outliers.md)")
+    gs = DEFAULT_GATE_SCALE
+    s.add_argument("--gate-scale", type=_gate_scale, default=gs, metavar="W:T:S|none",
+                   help="scale the gate's threshold by m / T clipped to [1, S], m the median "
+                        "over the last W gated closures of their NIS over the chi-square "
+                        f"median (default {gs['window']}:{gs['open']:g}:{gs['max']:g}, "
+                        "docs/design.md 'Relinearisation'; 'none': a fixed threshold)")
+    s.add_argument("--history", type=_history, default=DEFAULT_HISTORY_BYTES,
+                   metavar="BYTES|none",
+                   help="bound of each map's record of its inputs, from which it relinearises "
+                        "(default %(default)s; beyond it the oldest removed frames are "
+                        "marginalised into a prior; 'none': no record, no relinearisation)")
+    pol = DEFAULT_POLICY or Policy()
+    s.add_argument("--relinearize-nis", type=_gate, default=pol.nis, metavar="Q|none",
+                   help="relinearise a component after an accepted loop closure whose NIS "
+                        "exceeds the chi-square quantile Q (default %(default)s)")
+    s.add_argument("--relinearize-every", type=_every, default=pol.every, metavar="K|none",
+                   help="relinearise a component every K of its inputs (default %(default)s)")
+    s.add_argument("--relinearize-gap", type=_defer, default=pol.gap, metavar="K",
+                   help="inputs of a component between two automatic relinearisations "
+                        "triggered by NIS or the gate (default %(default)s)")
+    s.add_argument("--relinearize-regate", type=_every, default=pol.regate, metavar="K|none",
+                   help="when a loop closure fails the gate and K of the last 8 gated closures "
+                        "failed, relinearise its component and gate it again (at most once per "
+                        "--relinearize-gap inputs; default %(default)s)")
     s.add_argument("--record", type=Path, default=None, metavar="PATH.mcap",
                    help="new recording file (default recordings/run-<UTC time>.mcap)")
     s.add_argument("--restore", type=Path, nargs="+", default=None, metavar="PATH.mcap",
@@ -383,6 +410,54 @@ def _gate(text: str) -> float | None:
     return q
 
 
+def _gate_scale(text: str) -> dict[str, Any] | None:
+    if text == "none":
+        return None
+    parts = text.split(":")
+    try:
+        d: dict[str, Any] = {"window": int(parts[0]), "open": float(parts[1]),
+                             "max": float(parts[2])}
+    except (ValueError, IndexError):
+        d = {"window": 0, "open": 0.0, "max": 0.0}
+    if len(parts) != 3 or not (1 <= d["window"] <= 999 and d["open"] >= 1.0
+                               and d["max"] >= 1.0):
+        raise argparse.ArgumentTypeError(f"expected W:T:S (W in [1, 999], T, S >= 1) or "
+                                         f"'none', got {text!r}")
+    return d
+
+
+def _history(text: str) -> int | None:
+    if text == "none":
+        return None
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if not 2**16 <= n <= 2**40:
+        raise argparse.ArgumentTypeError(f"expected a byte count in [65536, 2**40] or 'none', "
+                                         f"got {text!r}")
+    return n
+
+
+def _every(text: str) -> int | None:
+    return None if text == "none" else _defer(text)
+
+
+def _policy(args: argparse.Namespace) -> dict[str, Any] | None:
+    """The automatic relinearisation policy of the serve flags (None: none asked for)."""
+    pol = DEFAULT_POLICY or Policy()
+    if args.relinearize_nis is None and args.relinearize_every is None \
+            and args.relinearize_regate is None:
+        return None
+    if args.history is None:
+        if (args.relinearize_nis, args.relinearize_every, args.relinearize_regate) == (
+                pol.nis, pol.every, pol.regate):
+            return None  # --history none turns the default policy off
+        raise McsmError("--relinearize-* needs a history (not --history none)")
+    return {"nis": args.relinearize_nis, "every": args.relinearize_every,
+            "regate": args.relinearize_regate, "gap": args.relinearize_gap}
+
+
 def _defer(text: str) -> int:
     try:
         k = int(text)
@@ -462,11 +537,18 @@ def serve(args: argparse.Namespace) -> int:
     # restoring without --map serves the recording's maps (or "default" if it has none)
     standby_of = list(dict.fromkeys(args.standby_of or []))
     maps = args.map or ([] if args.restore or standby_of else [wire.DEFAULT_MAP])
+    try:
+        policy = _policy(args)
+    except McsmError as exc:
+        print(f"mcsm serve: {exc}", file=sys.stderr)
+        return 2
     opts = ServerOptions(
         maps=list(dict.fromkeys(maps)), prefix=args.prefix,
         map_options={"n_samples": args.samples, "method": args.method, "space": args.space,
                      "analysis": args.analysis, "shrink": args.shrink,
-                     "inflation": args.inflation, "gain": args.gain, "gate": args.gate},
+                     "inflation": args.inflation, "gain": args.gain, "gate": args.gate,
+                     "gate_scale": args.gate_scale, "history": args.history,
+                     "relinearize": policy},
         record=record, restore=restore, checkpoint_every=max(1, args.checkpoint_every),
         queue_size=args.queue_size, queue_bytes=max(1, args.queue_bytes),
         retract_window_bytes=args.retract_window_bytes, split_bytes=args.split_size,

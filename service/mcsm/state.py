@@ -122,7 +122,8 @@ class MapState:
                                self.map.root(req.a), verdict=verdict)
             else:
                 ack = wire.Ack(req.request_id, self.seq + 1, op, r.kind, r.component,
-                               frames_added=tuple(r.frames_added), verdict=verdict)
+                               frames_added=tuple(r.frames_added), verdict=verdict,
+                               relin=None if r.relin is None else r.relin.to_dict())
             self.verdicts[verdict.status] += 1
             for decided in out.decided.values():  # a held closure decided now: was pending
                 self.verdicts["pending"] -= 1
@@ -137,7 +138,7 @@ class MapState:
             c = operation.change(self.map, req)
             ack = wire.Ack(req.request_id, self.seq + 1, op, c.kind, c.component,
                            frames_added=c.frames_added, frames_removed=c.frames_removed,
-                           verdict=c.verdict)
+                           verdict=c.verdict, relin=c.relin)
             if c.verdict is not None:
                 self.verdicts[c.verdict.status] += 1
         else:

@@ -141,6 +141,10 @@ class Keys:
         return self._k("verdict")
 
     @property
+    def relinearize(self) -> str:
+        return self._k("relinearize")
+
+    @property
     def events(self) -> str:
         return self._k("events")
 
@@ -410,6 +414,17 @@ class RetractRequest:
 
 
 @dataclass(frozen=True)
+class RelinearizeRequest:
+    """Relinearise ``frame``'s component, or every component when ``frame`` is empty: solve
+    for the maximum a posteriori estimate of everything it has seen and redraw its samples
+    (:meth:`mcsm.core.smap.StochasticMap.relinearize`)."""
+
+    request_id: str
+    frame: str = ""
+    sender: str = ""
+
+
+@dataclass(frozen=True)
 class VerdictRequest:
     """Ask for the current verdict of the request ``target`` (a request id)."""
 
@@ -518,6 +533,8 @@ class Ack:
                                                         required=False))
     verdict: Verdict | None = field(default=None, metadata=wire_field(
         lambda v, name: Verdict.from_dict(v), pack=message_dict, required=False, omit=_is_none))
+    relin: dict[str, Any] | None = field(default=None, metadata=wire_field(
+        lambda v, name: check_map(v, name), pack=dict, required=False, omit=_is_none))
 
 
 def _check_mean(val: Any, name: str) -> Samples:
@@ -883,6 +900,25 @@ def decode_retract(payload: bytes, *, max_bytes: int = MAX_PAYLOAD_BYTES) -> Ret
     return RetractRequest(request_id=_request_id(d),
                           target=_str(d, "target", max_chars=MAX_ID_CHARS),
                           sender=_str(d, "sender", max_chars=MAX_SENDER_CHARS, default=""))
+
+
+def encode_relinearize(request_id: str, frame: str = "", sender: str = "") -> bytes:
+    """A relinearise request of ``frame``'s component (empty: every component)."""
+    d: dict[str, Any] = {"v": VERSION, "id": request_id}
+    if frame:
+        d["frame"] = frame
+    if sender:
+        d["sender"] = sender
+    return pack(d)
+
+
+def decode_relinearize(payload: bytes, *, max_bytes: int = MAX_PAYLOAD_BYTES
+                       ) -> RelinearizeRequest:
+    d = unpack(payload, max_bytes=max_bytes)
+    _keys(d, ("id",), ("frame", "sender"))
+    frame = check_frame(d["frame"]) if "frame" in d else ""
+    return RelinearizeRequest(request_id=_request_id(d), frame=frame,
+                              sender=_str(d, "sender", max_chars=MAX_SENDER_CHARS, default=""))
 
 
 def encode_verdict_request(request_id: str, target: str) -> bytes:

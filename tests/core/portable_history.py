@@ -2,8 +2,9 @@
 
 Usage: ``python -m tests.core.portable_history [--threads K] [--replay FILE.mcap ...]``.
 Prints one JSON object: the state digest of the same 3-D history (a chain with loop
-closures, point landmarks, a join of two components, a submap import, removals including a
-root's) under each option set that ``mcsm serve`` offers for the joint update, and, for each
+closures, point landmarks, relinearisations on request and by the maps' policies, a join of two
+components, a submap import, removals including a root's) under each option set that
+``mcsm serve`` offers for the joint update, and, for each
 ``--replay`` file, whether it replays identical and its final digests; and a revisit under
 the service's ``--gate-defer`` policy (its digest and every verdict). The parent test runs
 this under other BLAS kernels, other numpy CPU features, other thread counts and other
@@ -30,6 +31,8 @@ OPTION_SETS: dict[str, dict[str, object]] = {
     "denkf+1.01": {"analysis": "denkf", "inflation": 1.01},
     "no gate": {"gate": None},
     "paper": {"method": "paper"},
+    "relinearize often": {"relinearize": {"nis": 0.5, "every": 4, "gap": 2, "regate": 1},
+                          "gate_scale": {"window": 3, "open": 1.0, "max": 4.0}},
 }
 
 
@@ -50,6 +53,9 @@ def history(threads: int, device: object = "cpu", **opts: object) -> str:
                      m.query(f"p{a}", f"p{k + 1}")[rng.permutation(N)])
             m.update(f"p{k + 1}", f"l{4 * (a // 4)}",
                      m.query(f"p{k + 1}", f"l{4 * (a // 4)}")[:, :3][rng.permutation(N)])
+        if k in (12, 24):
+            m.remove(f"p{k - 8}")  # a removed pose, then a relinearisation on request
+            m.relinearize()
     for k in range(8):  # a second robot's map, exported and imported
         side.update(f"r2/q{k}", f"r2/q{k + 1}", random_at(rng, N, kind="cloud", t_sigma=0.2))
     m.import_component(side.export_component("r2/q0"))
@@ -59,6 +65,7 @@ def history(threads: int, device: object = "cpu", **opts: object) -> str:
     m.remove("p0")  # the root: re-root at the next full frame
     m.update("p1", "p29", m.query("p1", "p29")[rng.permutation(N)])
     m.remove("r2/q8")
+    m.relinearize("p1")  # an imported submap's component: skipped, the digest unchanged
     return m.state_digest()
 
 

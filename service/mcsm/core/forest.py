@@ -76,12 +76,16 @@ class Verdict:
 @dataclass(frozen=True)
 class UpdateResult:
     """What an update did: ``kind`` is new_component, new_frame, join, loop_closure, import or
-    rejected (the gate refused a loop closure; the map is unchanged)."""
+    rejected (the gate refused a loop closure; the map is unchanged, unless ``relin`` says
+    that it was relinearised before the gate judged the closure again). ``relin``: the
+    relinearisation this update triggered (:class:`mcsm.core.relinearize.RelinReport`), if
+    any."""
 
     kind: str
     component: str
     frames_added: tuple[str, ...] = ()
     verdict: Verdict = field(default_factory=Verdict)
+    relin: Any = None
 
 
 @dataclass(frozen=True)
