@@ -115,14 +115,17 @@ def main() -> int:
                 type=ParameterType.PARAMETER_STRING, string_value=rid))])
         r = call(SetParameters, f"{NODE}/set_parameters", req)
         out[action] = [r.results[0].successful, r.results[0].reason] if r else None
-    for srv in ("snapshot", "relinearize"):
-        r = call(Trigger, f"{NODE}/{srv}", Trigger.Request())
-        out[srv] = [r.success, r.message] if r else None
+    r = call(Trigger, f"{NODE}/snapshot", Trigger.Request())
+    out["snapshot"] = [r.success, r.message] if r else None
     n_diag = spec["n_constraints"]
-    # the publications after the reinstate (diagnostics come last in each round)
+    # the publications after the reinstate (diagnostics come last in each round), kept before
+    # the relinearisation below changes the map
     spin_until(lambda: out["diagnostics"].get("received") == str(len(spec["messages"]))
                and int(out["diagnostics"].get("applied", -1)) >= n_diag
                and out["diagnostics"].get("last_action", "").startswith("reinstate"), 10.0)
+    out["diagnostics_reinstated"] = dict(out["diagnostics"])
+    r = call(Trigger, f"{NODE}/relinearize", Trigger.Request())
+    out["relinearize"] = [r.success, r.message] if r else None
     spin_until(lambda: False, 0.3)
     with open(sys.argv[2], "w") as f:
         json.dump(out, f)
