@@ -44,7 +44,8 @@ def encode_snapshot(snap: dict[str, Any]) -> dict[str, Any]:
 
 
 def decode_snapshot(obj: Any, n_samples: int) -> dict[str, Any]:
-    """Inverse of :func:`encode_snapshot`, checked (shapes, finiteness).
+    """Inverse of :func:`encode_snapshot`, checked (shapes, finiteness); a component's
+    ``edges`` may also be a float64 array already (a chunked snapshot's, reassembled).
 
     Raises
     ------
@@ -57,7 +58,15 @@ def decode_snapshot(obj: Any, n_samples: int) -> dict[str, Any]:
     for c in obj["components"]:
         if not isinstance(c, dict):
             raise McsmError("a snapshot component is not a map")
-        edges = wire.unpack_array(c.get("edges"), "edges", 3, max_elems=1 << 27)
+        raw = c.get("edges")
+        if isinstance(raw, np.ndarray):  # a chunked snapshot's, filled by mcsm.snapchunks
+            if raw.ndim != 3 or raw.dtype != np.float64:
+                raise McsmError(f"snapshot edges of shape {raw.shape}, dtype {raw.dtype}")
+            if not np.isfinite(raw).all():
+                raise McsmError("snapshot edges hold non-finite values (NaN or inf)")
+            edges = raw
+        else:  # a single record's: at most 4 GiB (msgpack's limit on one bin)
+            edges = wire.unpack_array(raw, "edges", 3, max_elems=1 << 29)
         if edges.shape[1:] != (n_samples, 7):
             raise McsmError(f"snapshot edges {edges.shape} do not fit N = {n_samples}")
         comps.append({**c, "edges": edges})

@@ -819,7 +819,7 @@ def _inspect_one(path: Path, as_json: bool) -> int:
         RecordingReader,
     )
 
-    reader = RecordingReader(path)
+    reader = RecordingReader(path, edges=False)  # snapshots checked, not kept
     maps: dict[str, dict[str, Any]] = {}
     times: list[int] = []
     try:
@@ -1020,7 +1020,7 @@ def cat_cmd(args: argparse.Namespace) -> int:
         return EXIT_USAGE
     n_samples: dict[str, int] = {}
     for f in files:
-        reader = RecordingReader(f)
+        reader = RecordingReader(f, edges=False)
         code = _cat_file(args, f, reader, n_samples)
         if code != EXIT_OK:
             return code

@@ -16,6 +16,7 @@ from mcsm.ops import INPUT_TOPICS
 
 #: topics of an mcsm recording (mcsm.recording's)
 RECORDING_TOPICS = frozenset(["/mcsm/config", "/mcsm/checkpoint", "/mcsm/snapshot",
+                              "/mcsm/snapshot_part",
                               *INPUT_TOPICS.values()])
 #: records read at most before the verdict (a recording's first message comes much sooner)
 MAX_RECORDS = 10_000

@@ -17,7 +17,9 @@ topic                       message
 ``/mcsm/in/submap_import``  ``record_input``: submap import
 ``/mcsm/in/retract``        ``record_input``: retract (``/mcsm/in/reinstate``: reinstate)
 ``/mcsm/checkpoint``        ``record_checkpoint``: state digest after operation ``seq``
-``/mcsm/snapshot``          ``record_snapshot``: the whole state of a map after ``seq``
+``/mcsm/snapshot``          ``record_snapshot``: the whole state of a map after ``seq`` (or,
+                            above 64 MiB, the header of a chunked one: :mod:`mcsm.snapchunks`)
+``/mcsm/snapshot_part``     ``record_snapshot_part``: one part of a chunked snapshot
 ==========================  ===================================================================
 
 The input topics are the table's (:data:`mcsm.ops.INPUT_TOPICS`). Each input carries the map's
@@ -55,7 +57,7 @@ from typing import Any, BinaryIO
 
 import lz4.frame as lz4_frame
 from mcap.data_stream import RecordBuilder
-from mcap.exceptions import EndOfFile, McapError
+from mcap.exceptions import EndOfFile, McapError, RecordLengthLimitExceeded
 from mcap.opcode import Opcode
 from mcap.records import (
     Channel,
@@ -73,7 +75,7 @@ from mcap.records import (
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 
-from mcsm import __version__, ops, wire
+from mcsm import __version__, ops, snapchunks, wire
 from mcsm.carry import decode_ids, decode_window, encode_ids, encode_window
 from mcsm.carry import decode_snapshot as decode_snapshot  # re-exported (replication)
 from mcsm.carry import encode_snapshot as encode_snapshot
@@ -95,10 +97,16 @@ TOPIC_OPS = ops.TOPIC_OPS
 _SCHEMAS = {TOPIC_CONFIG: ("mcsm.RecordConfig", "record_config.json"),
             TOPIC_CHECKPOINT: ("mcsm.RecordCheckpoint", "record_checkpoint.json"),
             TOPIC_SNAPSHOT: ("mcsm.RecordSnapshot", "record_snapshot.json"),
+            snapchunks.TOPIC_SNAPSHOT_PART: ("mcsm.RecordSnapshotPart",
+                                             "record_snapshot_part.json"),
             **{t: ("mcsm.RecordInput", "record_input.json") for t in INPUT_TOPICS.values()}}
-MAX_RECORD_BYTES = 1 << 30
-"""Largest record read back: a state snapshot holds a whole map (M x N x 7 float64)."""
+MAX_RECORD_BYTES = (1 << 32) + (1 << 20)
+"""Largest record read back: 4 GiB and a little, the most msgpack can hold, so that a
+single-record snapshot written before snapshots were chunked (:mod:`mcsm.snapchunks`) reads
+back; new files hold no record above the part size (64 MiB). A larger one stops the reader
+loudly (:class:`RecordingError` from iteration): the records after it are never skipped."""
 SNAPSHOT_FORMAT = 1
+TOPIC_SNAPSHOT_PART = snapchunks.TOPIC_SNAPSHOT_PART
 #: version of the file layout, in the ``mcsm`` metadata record ("mcsm recording v2")
 FORMAT_VERSION = 2
 #: "indexed-lz4" (chunked, indexes, CRCs, lz4 chunk compression; the default), "indexed" (the
@@ -617,7 +625,7 @@ class Recorder:
             "format": SNAPSHOT_FORMAT, "reason": reason, "verdicts": dict(state.verdicts),
             "deferral": (None if state.deferral is None else state.deferral.state.encode()),
             "ids": encode_ids(state.id_columns()),
-            "state": encode_snapshot(state.map.snapshot())}
+            "state": state.map.snapshot()}
         if first and state.history.window_start < state.seq:
             window = encode_window(state.history)
             if window is not None:
@@ -626,7 +634,10 @@ class Recorder:
                 log.warning("map %r: its retract window holds inputs applied without their "
                             "bytes; %s replayed alone starts its window at seq %d",
                             state.name, self.path, state.seq)
-        self._add(TOPIC_SNAPSHOT, rec, now, state.seq)
+        log_ns = time.time_ns()
+        for topic, data in snapchunks.records(rec):  # one record, or a header and its parts
+            self._w.add_message(self._channels[topic], log_time=log_ns, data=data,
+                                publish_time=now, sequence=int(state.seq) & 0xFFFFFFFF)
         self._snap_seq[state.name] = state.seq
         self._flush(self._fsync)
         del rec
@@ -747,17 +758,30 @@ class RecordingReader:
     (why reading stopped early, either way) and ``stop_offset`` (the byte where it stopped).
     Reading stops at the first cut or damage; every record before it is yielded.
 
+    A chunked snapshot (:mod:`mcsm.snapchunks`) is yielded as one ``/mcsm/snapshot`` item once
+    its last part was read; ``edges`` (a bool, or a function of its header) says whether its
+    edge arrays are kept or only checked. ``pending_snapshot`` says what an unfinished one at
+    the end of the file lacks (a file cut while it was written; nothing after it was lost).
+
     Raises
     ------
     RecordingError
-        If the file is not an MCAP file (no magic and header).
+        If the file is not an MCAP file (no magic and header); while iterating, if a
+        snapshot cannot be read back (an unfinished chunked snapshot followed by another
+        record, or a record larger than :data:`MAX_RECORD_BYTES`): the message names the
+        file and the byte offsets, and the records after it are not read.
     OSError
         If the file cannot be opened.
     """
 
     def __init__(self, path: str | os.PathLike[str],
-                 progress: Callable[[int, int], None] | None = None) -> None:
+                 progress: Callable[[int, int], None] | None = None,
+                 edges: bool | Callable[[dict[str, Any]], bool] = True) -> None:
         self.path = Path(path)
+        self.edges = edges
+        self.record_offset = 0  # where the record last yielded by raw() starts (its chunk)
+        self.oversize: str | None = None
+        self.pending_snapshot: str | None = None
         self.size = self.path.stat().st_size
         self.progress = progress
         self.complete = False
@@ -799,6 +823,10 @@ class RecordingReader:
     def _stopped(self, exc: BaseException, at: int, what: str = "") -> None:
         self.stop_offset = at
         eof = isinstance(exc, (EndOfFile, EOFError, struct.error))
+        if isinstance(exc, RecordLengthLimitExceeded):
+            self.oversize = (f"the record at byte {at} is longer than the "
+                             f"{MAX_RECORD_BYTES} bytes read back ({exc}); the records after "
+                             "it are not read")
         if eof:
             self.tail_error = (f"the file ends inside the record at byte {at} of {self.size}"
                                if at < self.size else f"the file ends at byte {self.size}")
@@ -830,6 +858,7 @@ class RecordingReader:
                     self._stopped(exc, pos)
                     break
                 inner: list[Any] = [rec]
+                self.record_offset = pos
                 if isinstance(rec, Chunk):
                     self.n_chunks += 1
                     self.n_chunks_crc += rec.uncompressed_crc != 0
@@ -877,16 +906,46 @@ class RecordingReader:
                 self.progress(self.size if self.complete else fh.tell(), self.size)
 
     def __iter__(self) -> Iterator[RecordItem]:
+        asm = snapchunks.Assembler(str(self.path), self.size, self.edges)
+        head_time = 0
         for rec in self.raw():
             if not isinstance(rec, Message):
                 continue
             topic = self.channels[rec.channel_id].topic
+            at = self.record_offset
             try:
-                data = wire.unpack(rec.data, max_bytes=MAX_RECORD_BYTES)
+                if topic in (TOPIC_SNAPSHOT, TOPIC_SNAPSHOT_PART):
+                    data = snapchunks.unpack_body(rec.data)
+                else:
+                    data = wire.unpack(rec.data, max_bytes=MAX_RECORD_BYTES)
             except McsmError as exc:
                 self.tail_error = self.damage = f"undecodable record on {topic}: {exc}"
                 return
+            try:
+                if topic == TOPIC_SNAPSHOT_PART:
+                    whole = asm.part(data, at)
+                    if whole is not None:
+                        yield RecordItem(TOPIC_SNAPSHOT, whole, head_time)
+                    continue
+                if asm.pending is not None:
+                    raise snapchunks.SnapshotError(
+                        f"{asm.pending}; the record at byte {at} ({topic}) follows: the "
+                        "snapshot cannot be read back")
+                if topic == TOPIC_SNAPSHOT and snapchunks.is_header(data):
+                    asm.start(data, at)
+                    head_time = int(rec.log_time)
+                    continue
+            except snapchunks.SnapshotError as exc:
+                raise RecordingError(str(self.path), f"{exc}; the records after it are not "
+                                     "read (mcsm recover cannot mend a snapshot)") from None
             yield RecordItem(topic, data, int(rec.log_time))
+        self.pending_snapshot = asm.pending
+        if self.oversize is not None:
+            raise RecordingError(str(self.path), self.oversize)
+        if self.pending_snapshot is not None:
+            note = f"{self.pending_snapshot} (the file ends inside it)"
+            self.tail_error = note if self.tail_error is None else f"{self.tail_error}; {note}"
+            log.warning("%s: %s", self.path, note)
 
 
 def scan_chunks(path: str | os.PathLike[str], start: int) -> Iterator[tuple[int, list[Any]]]:
@@ -1003,8 +1062,10 @@ class _Chain:
     file."""
 
     def __init__(self, paths: list[Path],
-                 progress: Callable[[int, int], None] | None = None) -> None:
+                 progress: Callable[[int, int], None] | None = None,
+                 edges: bool | Callable[[dict[str, Any]], bool] = True) -> None:
         self.paths = paths
+        self.edges = edges
         self.total = sum(p.stat().st_size for p in paths)
         self.progress = progress
         self.reader: RecordingReader | None = None
@@ -1029,7 +1090,8 @@ class _Chain:
                 if self.progress is not None:
                     self.progress(base + n, self.total)
 
-            reader = RecordingReader(path, report if self.progress is not None else None)
+            reader = RecordingReader(path, report if self.progress is not None else None,
+                                     edges=self.edges)
             self.reader = reader
             yield from reader
             if k == 0:
@@ -1067,7 +1129,7 @@ def _start_points(paths: list[Path]) -> tuple[int, dict[str, int]]:
     chosen: dict[str, int] = {}
     for k in range(len(paths) - 1, -1, -1):
         here: dict[str, list[_Start]] = {}
-        for item in RecordingReader(paths[k]):
+        for item in RecordingReader(paths[k], edges=False):  # snapshots' edges not kept
             d = item.data
             name = d.get("map")
             if not isinstance(name, str):
@@ -1152,7 +1214,15 @@ def replay(path: PathArg | Sequence[PathArg], *, sink: Recorder | None = None,
     if from_snapshot:
         first, start = _start_points(paths)
     rep.files = [str(p) for p in paths[first:]]
-    reader = _Chain(paths[first:], progress)
+
+    def load_edges(head: dict[str, Any]) -> bool:
+        """Whether a chunked snapshot's edges are needed: only where replay starts from it
+        (the condition below); the others are verified by their digest alone."""
+        st0 = rep.states.get(str(head.get("map")))
+        seq0 = int(head.get("seq", -1))
+        return st0 is None or seq0 == start.get(st0.name) or st0.seq == 0 < seq0
+
+    reader = _Chain(paths[first:], progress, edges=load_edges)
     for item in reader:
         if stop_after is not None and rep.n_inputs >= stop_after:
             break

@@ -68,7 +68,7 @@ def check_indexed(path: Path, n_inputs: int) -> None:
     assert len(names) == len(set(names))  # each schema registered once
     assert {"mcsm.RecordConfig", "mcsm.RecordCheckpoint", "mcsm.RecordInput"} <= set(names) \
         <= {"mcsm.RecordConfig", "mcsm.RecordCheckpoint", "mcsm.RecordInput",
-            "mcsm.RecordSnapshot"}
+            "mcsm.RecordSnapshot", "mcsm.RecordSnapshotPart"}
     assert summary.statistics is not None and summary.statistics.message_count == len(msgs)
     rd = RecordingReader(path)
     assert sum(1 for _ in rd) == len(msgs)

@@ -16,6 +16,7 @@ from mcsm.recording import (
     TOPIC_CHECKPOINT,
     TOPIC_CONFIG,
     TOPIC_SNAPSHOT,
+    TOPIC_SNAPSHOT_PART,
     Recorder,
     RecordingError,
     RecordingReader,
@@ -71,7 +72,7 @@ def test_layout_schemas_and_readers_agree(tmp_path: Path) -> None:
         assert summary is not None
         topics = {c.topic: c for c in summary.channels.values()}
         assert set(topics) == {TOPIC_CONFIG, TOPIC_CHECKPOINT, TOPIC_SNAPSHOT,
-                               *INPUT_TOPICS.values()}
+                               TOPIC_SNAPSHOT_PART, *INPUT_TOPICS.values()}
         for c in topics.values():
             assert c.message_encoding == "msgpack"
             sch = summary.schemas[c.schema_id]
