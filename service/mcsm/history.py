@@ -117,8 +117,20 @@ class History:
         """Bytes the window holds now (snapshots' and logged requests' arrays)."""
         return sum(s[3] for s in self.snapshots) + sum(e.nbytes for e in self.log)
 
+    def too_big(self, smap: StochasticMap) -> bool:
+        """Whether ``smap``'s edges alone (56 N bytes a frame, counted by :func:`nbytes`)
+        exceed the budget: a snapshot of it would be dropped at once, so none is taken (no
+        whole-map copy every ``snapshot_every`` operations; the window is what it would be,
+        empty: a function of the map's size, so replay computes the same)."""
+        return (self.max_bytes is not None
+                and 56 * int(smap.n_samples) * int(smap.n_frames) > self.max_bytes)
+
     def start(self, smap: StochasticMap, seq: int, defer: DeferState | None = None) -> None:
         """The first snapshot (the map and its deferral state as they are at ``seq``)."""
+        if self.too_big(smap):
+            self.snapshots, self.log, self.by_id = [], [], {}
+            self.dropped_before = seq
+            return
         snap = smap.snapshot()
         self.snapshots = [(seq, snap, defer, nbytes(snap))]
         self.log, self.by_id = [], {}
@@ -152,6 +164,10 @@ class History:
         self.log.append(entry)
         if ops.get(op).change is not None:  # an input (not a retract): a possible target
             self.by_id[request_id] = entry
+        if self._due(seq) and self.too_big(smap):  # as if taken and dropped by _trim
+            self.dropped_before = max(self.dropped_before, seq)
+            self.snapshots, self.log, self.by_id = [], [], {}
+            return
         if self._due(seq):
             snap = smap.snapshot()
             self.snapshots.append((seq, snap, defer, nbytes(snap)))

@@ -58,6 +58,9 @@ MAX_REPLY_BYTES = 1024 * 1024 * 1024
 """Largest reply a client decodes (submap exports of big maps are large)."""
 MAX_SAMPLES = 100_000
 MAX_SUBMAP_FRAMES = 100_000
+MAX_INFO_FRAMES = 10_000_000
+"""Most frames (and components) an ``info`` reply may list: the reply lists every frame, and
+MAX_REPLY_BYTES bounds it first (about 20 bytes a frame name, twice: frames and components)."""
 MAX_ID_CHARS = 128
 MAX_SENDER_CHARS = 256
 QUAT_NORM_TOL = _CORE_QUAT_NORM_TOL
@@ -665,7 +668,7 @@ def pack(obj: Mapping[str, Any]) -> bytes:
 
 
 def unpack(payload: bytes | bytearray | memoryview, *, max_bytes: int = MAX_PAYLOAD_BYTES,
-           max_map_len: int = 64) -> dict[str, Any]:
+           max_map_len: int = 64, max_array_len: int = MAX_SUBMAP_FRAMES) -> dict[str, Any]:
     """Bounded msgpack decode of one message map; checks the version.
 
     Raises
@@ -687,7 +690,7 @@ def unpack(payload: bytes | bytearray | memoryview, *, max_bytes: int = MAX_PAYL
     try:
         obj = msgpack.unpackb(
             payload, raw=False, strict_map_key=True, use_list=True,
-            max_bin_len=max_bytes, max_str_len=64 * 1024, max_array_len=MAX_SUBMAP_FRAMES,
+            max_bin_len=max_bytes, max_str_len=64 * 1024, max_array_len=max_array_len,
             max_map_len=max_map_len, max_ext_len=0,
         )
     except (ValueError, TypeError, OverflowError, msgpack.UnpackException) as exc:
@@ -1060,9 +1063,10 @@ def encode_info_reply(info: MapInfo) -> bytes:
 
 
 def decode_info_reply(payload: bytes) -> MapInfo:
-    # one entry per component: allow as many as a map may have frames
+    # every frame, and one entry per component: bounded by the reply's bytes
     return from_message_dict(MapInfo, unpack(payload, max_bytes=MAX_REPLY_BYTES,
-                                             max_map_len=MAX_SUBMAP_FRAMES))
+                                             max_map_len=MAX_INFO_FRAMES,
+                                             max_array_len=MAX_INFO_FRAMES))
 
 
 def encode_submap_reply(r: SubmapReply) -> bytes:

@@ -203,3 +203,45 @@ def test_a_header_announcing_more_than_the_file_is_refused() -> None:
                                                      "body_bytes": 10, "crc32": 0}}, 7)
     with pytest.raises(snapchunks.SnapshotError, match="without its header"):
         asm.part({"map": "m", "seq": 1, "part": 0, "data": b"x"}, 9)
+
+
+def test_a_map_over_the_window_budget_is_not_copied_for_the_window(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The retract window's snapshot of a map whose edges alone exceed the budget would be
+    dropped at once; it is no longer taken (no whole-map copy every --snapshot-every
+    operations), and the window is the same as when it was taken and dropped."""
+    from mcsm.core.smap import StochasticMap
+    from mcsm.history import History
+    from mcsm.state import MapState
+
+    def run(name: str) -> tuple[list[tuple[int, int]], str, list[int]]:
+        calls: list[int] = []  # frames of the map at each snapshot
+        real = StochasticMap.snapshot
+
+        def counting(self: StochasticMap) -> dict[str, object]:
+            calls.append(self.n_frames)
+            return real(self)
+
+        with monkeypatch.context() as m:
+            m.setattr(StochasticMap, "snapshot", counting)
+            st = MapState("default", StochasticMap(16), snapshot_every=5, snapshots_kept=3,
+                          retract_window_bytes=8 * 1024)  # 9 frames of N = 16
+            rec = Recorder(tmp_path / f"{name}.mcap")
+            dr = Driver(rec, st, seed=8802, disk_every=0)
+            rec.config(st, 5)
+            seen = []
+            for k in range(40):
+                dr.update(k)
+                seen.append((st.history.window_start, len(st.history.snapshots)))
+            dr.close()
+        return seen, st.digest(), calls
+
+    now, digest, calls = run("now")
+    with monkeypatch.context() as m:
+        m.setattr(History, "too_big", lambda self, smap: False)
+        before, digest_before, calls_before = run("before")
+    assert now == before and digest == digest_before
+    assert len(calls) < len(calls_before)
+    assert max(calls) * 56 * 16 <= 8 * 1024 < max(calls_before) * 56 * 16
+    assert now[-1] == (40, 0)  # no window: the map alone is over the budget
+    assert replay(tmp_path / "now.mcap").states["default"].digest() == digest

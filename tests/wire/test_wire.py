@@ -87,6 +87,12 @@ def test_ack_info_event_error_round_trip() -> None:
     big = wire.MapInfo("m", 10, {}, 1, "d", tuple(f for v in many.values() for f in v), many, 0,
                        {}, "z", "")
     assert wire.decode_info_reply(wire.encode_info_reply(big)).components == many
+    # a map of more than 100,000 frames (the largest submap) still has a readable info
+    frames = tuple(f"f{i}" for i in range(250_000))
+    huge = wire.MapInfo("m", 10, {}, 1, "d", frames, {"f0": frames}, 0, {}, "z", "")
+    assert wire.decode_info_reply(wire.encode_info_reply(huge)).n_frames == 250_000
+    with pytest.raises(BadMessage):  # requests keep the submap's bound
+        wire.unpack(wire.pack({"v": wire.VERSION, "frames": list(frames)}))
     ev = wire.Event("default", 5, "remove", "remove", ("r",), None, 123, None)
     assert wire.decode_event(wire.encode_event(ev)) == ev
     err = wire.decode_error(wire.encode_error(UnknownFrame("ghost"), "r-2"))

@@ -65,7 +65,7 @@ def _last_time_ns(path: Path) -> int:
     from mcsm.recording import RecordingReader
 
     t = 0
-    for item in RecordingReader(path):
+    for item in RecordingReader(path, edges=False):
         t = max(t, int(item.log_time_ns))
     return t
 

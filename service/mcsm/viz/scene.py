@@ -255,7 +255,7 @@ def _scan(path: str | os.PathLike[str] | Sequence[str | os.PathLike[str]]
     bases: dict[str, int] = {}
     n_inputs = 0
     for p in paths:
-        reader = RecordingReader(p)
+        reader = RecordingReader(p, edges=False)  # snapshots unused here
         for item in reader:
             name = item.data.get("map")
             if not isinstance(name, str):
