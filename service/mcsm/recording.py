@@ -1360,7 +1360,8 @@ def replay(path: PathArg | Sequence[PathArg], *, sink: Recorder | None = None,
 
 def _load_snapshot(st: MapState, d: dict[str, Any], device: object = "cpu") -> None:
     """Continue ``st`` from the snapshot record ``d``: its map (its edges on ``device``),
-    deferral state, remembered ids (when recorded) and retract window (when carried).
+    deferral state, remembered ids (when recorded) and retract window (when carried). The
+    record's ``state`` is dropped afterwards (its arrays are the size of the map).
 
     Raises
     ------
@@ -1377,6 +1378,8 @@ def _load_snapshot(st: MapState, d: dict[str, Any], device: object = "cpu") -> N
     window = d.get("window")
     if window is not None:
         decode_window(window, st.history, st.n_samples)
+    d["state"] = None  # the record's copy of the edges: freed before the digest check
+    del snap
 
 
 # --------------------------------------------------------------------------------------------

@@ -297,7 +297,7 @@ class Assembler:
                 comp["edges"] = arr
         self._head = None
         out = {**doc, "chunked": dict(c)}
-        self._doc, self._arrays = None, []
+        self._doc, self._arrays, self._targets, self._sizes = None, [], [], []
         return out
 
     def _open_body(self, edge_bytes: int, at: int) -> None:

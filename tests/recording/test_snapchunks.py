@@ -9,9 +9,11 @@ The part size is lowered through ``MCSM_SNAPSHOT_CHUNK_BYTES`` so that a 60-fram
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
+from jsonschema import Draft202012Validator
 from mcap.records import Message
 from mcsm import recording, snapchunks
 from mcsm.carry import decode_snapshot
@@ -25,6 +27,7 @@ from mcsm.recording import (
     RecordingReader,
     recover,
     replay,
+    schema_bytes,
 )
 
 from tests.recording import test_split
@@ -95,6 +98,22 @@ def test_a_chunked_snapshot_replays_and_restores_bit_identical(
     assert again.identical and again.snapshots_loaded == 1
     assert again.states["default"].digest() == final
     assert _parts(tmp_path / "restored.mcap")
+    # the header and the parts as written match their schemas
+    validators = {t: Draft202012Validator(json.loads(schema_bytes(f))) for t, f in
+                  ((TOPIC_SNAPSHOT, "record_snapshot.json"),
+                   (TOPIC_SNAPSHOT_PART, "record_snapshot_part.json"))}
+    checked = 0
+    for r in rd.raw():
+        if isinstance(r, Message) and rd.channels[r.channel_id].topic in validators:
+            d = snapchunks.unpack_body(r.data)
+            v = validators[rd.channels[r.channel_id].topic]
+            assert list(v.iter_errors(d)) == [], d.get("part")
+            checked += 1
+    assert checked == len(heads) + len(parts)
+    head = snapchunks.unpack_body(heads[0].data)
+    assert "state" not in head and "verdicts" not in head
+    for bad in ({**head, "format": 1}, {k: v for k, v in head.items() if k != "chunked"}):
+        assert list(validators[TOPIC_SNAPSHOT].iter_errors(bad)) != []  # the schema tells
     assert mcsm_main(["inspect", str(path)]) == EXIT_OK
     assert mcsm_main(["cat", str(path)]) == EXIT_OK
     assert mcsm_main(["replay", str(path)]) == EXIT_OK

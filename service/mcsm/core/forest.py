@@ -160,7 +160,7 @@ class Forest:
         for cid, c in sorted(self._comps.items()):
             h.update(json.dumps([cid, c.frames]).encode())
             h.update(np.array(c.point_list(), dtype=bool).tobytes())
-            h.update(np.ascontiguousarray(c.edges(), dtype="<f8").tobytes())
+            h.update(np.ascontiguousarray(c.edges(), dtype="<f8").data)  # no bytes copy
         return h.hexdigest()
 
     # ------------------------------------------------------------------ queries
