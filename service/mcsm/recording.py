@@ -906,46 +906,8 @@ class RecordingReader:
                 self.progress(self.size if self.complete else fh.tell(), self.size)
 
     def __iter__(self) -> Iterator[RecordItem]:
-        asm = snapchunks.Assembler(str(self.path), self.size, self.edges)
-        head_time = 0
-        for rec in self.raw():
-            if not isinstance(rec, Message):
-                continue
-            topic = self.channels[rec.channel_id].topic
-            at = self.record_offset
-            try:
-                if topic in (TOPIC_SNAPSHOT, TOPIC_SNAPSHOT_PART):
-                    data = snapchunks.unpack_body(rec.data)
-                else:
-                    data = wire.unpack(rec.data, max_bytes=MAX_RECORD_BYTES)
-            except McsmError as exc:
-                self.tail_error = self.damage = f"undecodable record on {topic}: {exc}"
-                return
-            try:
-                if topic == TOPIC_SNAPSHOT_PART:
-                    whole = asm.part(data, at)
-                    if whole is not None:
-                        yield RecordItem(TOPIC_SNAPSHOT, whole, head_time)
-                    continue
-                if asm.pending is not None:
-                    raise snapchunks.SnapshotError(
-                        f"{asm.pending}; the record at byte {at} ({topic}) follows: the "
-                        "snapshot cannot be read back")
-                if topic == TOPIC_SNAPSHOT and snapchunks.is_header(data):
-                    asm.start(data, at)
-                    head_time = int(rec.log_time)
-                    continue
-            except snapchunks.SnapshotError as exc:
-                raise RecordingError(str(self.path), f"{exc}; the records after it are not "
-                                     "read (mcsm recover cannot mend a snapshot)") from None
-            yield RecordItem(topic, data, int(rec.log_time))
-        self.pending_snapshot = asm.pending
-        if self.oversize is not None:
-            raise RecordingError(str(self.path), self.oversize)
-        if self.pending_snapshot is not None:
-            note = f"{self.pending_snapshot} (the file ends inside it)"
-            self.tail_error = note if self.tail_error is None else f"{self.tail_error}; {note}"
-            log.warning("%s: %s", self.path, note)
+        """The decoded messages; chunked snapshots reassembled (:func:`snapchunks.items`)."""
+        return snapchunks.items(self)
 
 
 def scan_chunks(path: str | os.PathLike[str], start: int) -> Iterator[tuple[int, list[Any]]]:

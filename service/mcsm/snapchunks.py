@@ -32,9 +32,10 @@ after it was lost.
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Callable, Iterator
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import msgpack
 import numpy as np
@@ -42,6 +43,11 @@ import numpy as np
 from mcsm import wire
 from mcsm.carry import encode_snapshot
 from mcsm.errors import McsmError
+
+if TYPE_CHECKING:
+    from mcsm.recording import RecordingReader, RecordItem
+
+log = logging.getLogger(__name__)
 
 TOPIC_SNAPSHOT_PART = "/mcsm/snapshot_part"
 CHUNK_BYTES_ENV = "MCSM_SNAPSHOT_CHUNK_BYTES"
@@ -323,3 +329,59 @@ class Assembler:
             if n:
                 self._targets.append(target)
                 self._sizes.append(n)
+
+
+def items(reader: RecordingReader) -> Iterator[RecordItem]:
+    """:class:`~mcsm.recording.RecordingReader`'s messages, decoded, each chunked snapshot
+    yielded once as one ``/mcsm/snapshot`` item (its header's log time); afterwards
+    ``reader.pending_snapshot`` says what an unfinished one at the end lacks.
+
+    Raises
+    ------
+    RecordingError
+        If a snapshot cannot be read back with records after it, or a record was longer than
+        the reader reads: the records after it are never skipped silently.
+    """
+    from mcap.records import Message
+
+    from mcsm import recording as rc
+
+    asm = Assembler(str(reader.path), reader.size, reader.edges)
+    head_time = 0
+    for rec in reader.raw():
+        if not isinstance(rec, Message):
+            continue
+        topic = reader.channels[rec.channel_id].topic
+        at = reader.record_offset
+        try:
+            if topic in (rc.TOPIC_SNAPSHOT, TOPIC_SNAPSHOT_PART):
+                data = unpack_body(rec.data)
+            else:
+                data = wire.unpack(rec.data, max_bytes=rc.MAX_RECORD_BYTES)
+        except McsmError as exc:
+            reader.tail_error = reader.damage = f"undecodable record on {topic}: {exc}"
+            return
+        try:
+            if topic == TOPIC_SNAPSHOT_PART:
+                whole = asm.part(data, at)
+                if whole is not None:
+                    yield rc.RecordItem(rc.TOPIC_SNAPSHOT, whole, head_time)
+                continue
+            if asm.pending is not None:
+                raise SnapshotError(f"{asm.pending}; the record at byte {at} ({topic}) "
+                                    "follows: the snapshot cannot be read back")
+            if topic == rc.TOPIC_SNAPSHOT and is_header(data):
+                asm.start(data, at)
+                head_time = int(rec.log_time)
+                continue
+        except SnapshotError as exc:
+            raise rc.RecordingError(str(reader.path), f"{exc}; the records after it are not "
+                                    "read (mcsm recover cannot mend a snapshot)") from None
+        yield rc.RecordItem(topic, data, int(rec.log_time))
+    reader.pending_snapshot = asm.pending
+    if reader.oversize is not None:
+        raise rc.RecordingError(str(reader.path), reader.oversize)
+    if reader.pending_snapshot is not None:
+        note = f"{reader.pending_snapshot} (the file ends inside it)"
+        reader.tail_error = note if reader.tail_error is None else f"{reader.tail_error}; {note}"
+        log.warning("%s: %s", reader.path, note)
