@@ -33,10 +33,7 @@ import os
 import sys
 from pathlib import Path
 
-from mcsm.connect import (
-    check_endpoint,
-    fill_connection_defaults,
-)
+from mcsm.connect import check_endpoint, fill_connection_defaults
 from mcsm.errors import McsmError, NoPermittedServer, NoServer, Timeout, Unreachable
 
 from mcsm_client.cli_common import (  # re-exported: the exit codes, UsageError, _ack_text
@@ -63,12 +60,7 @@ from mcsm_client.cli_map import (
     cmd_verdict,
     cmd_watch,
 )
-from mcsm_client.cli_run import (
-    cmd_multirobot,
-    cmd_play,
-    cmd_play_rosbag,
-    cmd_sim,
-)
+from mcsm_client.cli_run import cmd_multirobot, cmd_play, cmd_play_rosbag, cmd_sim
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -9,10 +9,7 @@ from typing import Any
 
 import numpy.typing as npt
 
-from mcsm.errors import (
-    BadMessage,
-    McsmError,
-)
+from mcsm.errors import BadMessage, McsmError
 from mcsm.wire.checks import (
     MAX_ID_CHARS,
     MAX_PAYLOAD_BYTES,

@@ -14,9 +14,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 from mcsm.core.names import NAMESPACE_RULE, is_namespace
-from mcsm.errors import (
-    BadMessage,
-)
+from mcsm.errors import BadMessage
 from mcsm.wire.checks import short
 
 DEFAULT_PREFIX = "mcsm"
@@ -27,8 +25,8 @@ REQUEST_LEAVES: Mapping[str, bool] = {
     "relinearize": False, "verdict": False, "query": False, "info": False}
 """Every request leaf the server answers, in the table's order, and whether it is also served
 on ``<leaf>/<namespace>`` (writes only that namespace's frames). Plain data, so that routing
-needs no table of operations: :mod:`mcsm.map.ops` checks on import that its table serves
-exactly these."""
+needs no table of operations; ``tests/wire/test_ops.py`` checks that the table
+(:mod:`mcsm.map.ops`) serves exactly these."""
 
 _MAP_RE = re.compile(r"[A-Za-z0-9_.+-]{1,64}")
 _PREFIX_RE = re.compile(r"[A-Za-z0-9_.+-]{1,64}(/[A-Za-z0-9_.+-]{1,64}){0,7}")

@@ -14,11 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from mcsm.errors import (
-    BadMessage,
-    LimitExceeded,
-    SampleCountMismatch,
-)
+from mcsm.errors import BadMessage, LimitExceeded, SampleCountMismatch
 from mcsm.wire.checks import (
     _NAMES,
     F8,
