@@ -6,6 +6,7 @@ type-checking-only imports included): every import of ``mcsm.core``, ``mcsm.wire
 from __future__ import annotations
 
 import ast
+from functools import cache
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -26,7 +27,9 @@ def _modules() -> dict[str, Path]:
     return mods
 
 
+@cache
 def _graph() -> dict[str, set[str]]:
+    """Each module's imports of ``mcsm``/``mcsm_client`` modules (read once per session)."""
     mods = _modules()
 
     def resolve(name: str) -> str:
