@@ -46,8 +46,8 @@ def _reset_peak() -> None:
 def write(path: Path, frames: int, n: int, after: int) -> dict[str, object]:
     from mcap.reader import make_reader
     from mcsm import StochasticMap, wire
+    from mcsm.map.state import MapState
     from mcsm.recording import TOPIC_SNAPSHOT_PART, Recorder, decode_input
-    from mcsm.state import MapState
     from mcsm_client.sampling import pose_from_planar, sample_pose
 
     rng = np.random.default_rng(5)

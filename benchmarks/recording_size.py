@@ -156,8 +156,8 @@ def recorder_cpu(work: Path, n: int, layouts: list[str], repeats: int) -> None:
 
     from mcsm import StochasticMap
     from mcsm.core.quat import qexp
+    from mcsm.map.state import MapState
     from mcsm.recording import Recorder
-    from mcsm.state import MapState
 
     rng = np.random.default_rng(11)
 

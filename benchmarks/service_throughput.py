@@ -39,8 +39,8 @@ from typing import Any
 
 import numpy as np
 from mcsm import StochasticMap
+from mcsm.map.state import MapState
 from mcsm.recording import decode_input, replay
-from mcsm.state import MapState
 from mcsm_client.client import MapClient
 from mcsm_client.process import ServerProcess
 from mcsm_client.sampling import pose_from_planar, sample_pose

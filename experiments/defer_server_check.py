@@ -1,8 +1,8 @@
-"""Does the server's deferral (``mcsm serve --gate-defer``, :mod:`mcsm.deferral`) decide as the
+"""Does the server's deferral (``mcsm serve --gate-defer``, :mod:`mcsm.map.deferral`) decide as the
 client-side policy the outlier benchmark measured (:class:`mcsm_client.outliers.DeferringMap`)?
 
 Feeds the benchmark's pose-graph cases (``experiments/outliers.py``: graphs, kinds of wrong
-closures, rates, seeds) to a :class:`mcsm.state.MapState` with deferral (the server's worker
+closures, rates, seeds) to a :class:`mcsm.map.state.MapState` with deferral (the server's worker
 code, without Zenoh) and to ``DeferringMap`` over the same inputs, and prints per case whether
 the final digests and every closure's final status agree, and the time per update of both.
 
@@ -18,8 +18,8 @@ from dataclasses import replace
 
 import numpy as np
 from mcsm import StochasticMap, wire
-from mcsm.deferral import DeferOptions
-from mcsm.state import MapState
+from mcsm.map.deferral import DeferOptions
+from mcsm.map.state import MapState
 from mcsm_client.outliers import DeferringMap, Ledger, Record
 
 from experiments.outliers import GATE, KINDS, RATES, corrupt, make_graph

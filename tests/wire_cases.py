@@ -12,8 +12,9 @@ from collections.abc import Callable
 
 import msgpack
 import numpy as np
-from mcsm import ops, wire
+from mcsm import wire
 from mcsm.core.at import identity
+from mcsm.map import ops
 
 
 def good_samples(n: int, width: int = 7) -> np.ndarray:

@@ -52,7 +52,7 @@ from typing import Any, TypeVar
 import numpy as np
 import numpy.typing as npt
 import zenoh
-from mcsm import ops, wire
+from mcsm import wire
 from mcsm.connect import ZenohConfigLike, client_config
 from mcsm.errors import (
     BadMessage,
@@ -63,6 +63,7 @@ from mcsm.errors import (
     Timeout,
     Unreachable,
 )
+from mcsm.map import ops
 
 log = logging.getLogger(__name__)
 
@@ -355,7 +356,7 @@ class MapClient:
 
     def _request(self, name: str, what: str, timeout_s: float | None, request_id: str | None,
                  *args: Any, **kwargs: Any) -> Any:
-        """Send operation ``name`` of the table (:mod:`mcsm.ops`): its encoder's payload to
+        """Send operation ``name`` of the table (:mod:`mcsm.map.ops`): its encoder's payload to
         its key (the namespaced one for a namespaced operation of a namespaced client), its
         reply decoded by its decoder (an ack also names the map's server)."""
         op = ops.get(name)

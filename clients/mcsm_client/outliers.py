@@ -12,12 +12,12 @@ Two policies over a :class:`mcsm.StochasticMap`, pure numpy plus :mod:`mcsm.core
 * :class:`DeferringMap` holds the first loop closure of a revisit as ``pending`` until a second
   closure agrees with it through the map's joint samples (the cycle test
   ``X1 ⊕ Q(b1→b2) ⊕ X2⁻¹ ⊕ Q(a2→a1) ≈ I`` at the gate's quantile,
-  :func:`mcsm.deferral.cycle_nis`), then applies both through the gate; one that disagrees
+  :func:`mcsm.map.deferral.cycle_nis`), then applies both through the gate; one that disagrees
   is rejected and the newer closure waits instead. A pending closure expires after ``expiry``
   inputs: it then goes through the gate alone (``on_expiry="gate"``) or is rejected
   (``"reject"``). This answers the gate's lock-in: an early wrong closure that passes because
   the map is still uncertain, and then makes the map reject the true ones. The server runs
-  the same policy (``mcsm serve --gate-defer``, :mod:`mcsm.deferral`).
+  the same policy (``mcsm serve --gate-defer``, :mod:`mcsm.map.deferral`).
 
 Statuses: ``accepted``, ``rejected`` (by the gate or the cycle test), ``pending``,
 ``retracted``, ``reinstated`` (issue 16 §2).
@@ -32,7 +32,7 @@ import numpy as np
 import numpy.typing as npt
 from mcsm.core import StochasticMap, Verdict
 from mcsm.core.gate import chi2_quantile
-from mcsm.deferral import cycle_nis, is_loop_closure  # the server's --gate-defer uses them too
+from mcsm.map.deferral import cycle_nis, is_loop_closure  # the server's --gate-defer uses them too
 
 Array = npt.NDArray[np.float64]
 

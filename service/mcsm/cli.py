@@ -45,11 +45,12 @@ from collections import Counter
 from pathlib import Path
 from typing import Any
 
-from mcsm import ops, wire
+from mcsm import wire
 from mcsm.core.relinearize import DEFAULT_HISTORY_BYTES, Policy
 from mcsm.core.smap import DEFAULT_GATE, DEFAULT_GATE_SCALE, DEFAULT_POLICY
-from mcsm.deferral import DEFAULT_EXPIRY, DeferOptions
 from mcsm.errors import McsmError
+from mcsm.map import ops
+from mcsm.map.deferral import DEFAULT_EXPIRY, DeferOptions
 
 log = logging.getLogger("mcsm")
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 import os
 from itertools import islice
 
-from mcsm.ops import INPUT_TOPICS
+from mcsm.map.ops import INPUT_TOPICS
 
 #: topics of an mcsm recording (mcsm.recording's)
 RECORDING_TOPICS = frozenset(["/mcsm/config", "/mcsm/checkpoint", "/mcsm/snapshot",

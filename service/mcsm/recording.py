@@ -75,16 +75,17 @@ from mcap.records import (
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 
-from mcsm import __version__, ops, snapchunks, wire
-from mcsm.carry import decode_ids, decode_window, encode_ids, encode_window
-from mcsm.carry import decode_snapshot as decode_snapshot  # re-exported (replication)
-from mcsm.carry import encode_snapshot as encode_snapshot
+from mcsm import __version__, snapchunks, wire
 from mcsm.core import ARITHMETIC_VERSION
 from mcsm.core.smap import StochasticMap
-from mcsm.deferral import DeferOptions, DeferState
 from mcsm.errors import McsmError
-from mcsm.history import DEFAULT_SNAPSHOT_EVERY, DEFAULT_SNAPSHOTS_KEPT
-from mcsm.state import DEFAULT_ID_TTL_S, DEFAULT_LRU, MapState
+from mcsm.map import ops
+from mcsm.map.carry import decode_ids, decode_window, encode_ids, encode_window
+from mcsm.map.carry import decode_snapshot as decode_snapshot  # re-exported (replication)
+from mcsm.map.carry import encode_snapshot as encode_snapshot
+from mcsm.map.deferral import DeferOptions, DeferState
+from mcsm.map.history import DEFAULT_SNAPSHOT_EVERY, DEFAULT_SNAPSHOTS_KEPT
+from mcsm.map.state import DEFAULT_ID_TTL_S, DEFAULT_LRU, MapState
 
 log = logging.getLogger(__name__)
 

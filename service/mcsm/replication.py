@@ -51,10 +51,10 @@ import zenoh
 
 from mcsm import wire
 from mcsm.core.smap import StochasticMap
-from mcsm.deferral import DeferOptions, DeferState
 from mcsm.errors import BadMessage, McsmError, NotReplicated
+from mcsm.map.deferral import DeferOptions, DeferState
+from mcsm.map.state import MapState
 from mcsm.recording import INPUT_TOPICS, decode_input, decode_snapshot, encode_snapshot
-from mcsm.state import MapState
 
 if TYPE_CHECKING:
     from mcsm.server import Server

@@ -46,12 +46,14 @@ from typing import Any
 
 import zenoh
 
-from mcsm import ops, wire
+from mcsm import wire
 from mcsm.core.smap import StochasticMap
-from mcsm.deferral import DeferOptions
 from mcsm.errors import Busy, InternalError, McsmError
-from mcsm.history import DEFAULT_SNAPSHOT_EVERY, DEFAULT_SNAPSHOTS_KEPT, DEFAULT_WINDOW_BYTES
 from mcsm.lanes import Full, Lanes
+from mcsm.map import ops
+from mcsm.map.deferral import DeferOptions
+from mcsm.map.history import DEFAULT_SNAPSHOT_EVERY, DEFAULT_SNAPSHOTS_KEPT, DEFAULT_WINDOW_BYTES
+from mcsm.map.state import DEFAULT_ID_TTL_S, DEFAULT_LRU, MapState
 from mcsm.recording import (
     Recorder,
     RecordingError,
@@ -67,7 +69,6 @@ from mcsm.replication import (
     PrimaryLink,
     undeclare_all,
 )
-from mcsm.state import DEFAULT_ID_TTL_S, DEFAULT_LRU, MapState
 
 log = logging.getLogger(__name__)
 

@@ -41,8 +41,8 @@ import msgpack
 import numpy as np
 
 from mcsm import wire
-from mcsm.carry import encode_snapshot
 from mcsm.errors import McsmError
+from mcsm.map.carry import encode_snapshot
 
 if TYPE_CHECKING:
     from mcsm.recording import RecordingReader, RecordItem

@@ -74,7 +74,7 @@ def deferral_history(threads: int, device: object = "cpu") -> str:
     held, paired through the map's joint samples (the cycle test) and decided; the digest and
     every verdict's status and NIS."""
     from mcsm import wire
-    from mcsm.deferral import DeferOptions, Deferral
+    from mcsm.map.deferral import DeferOptions, Deferral
 
     rng = np.random.default_rng(20261124)
     m = StochasticMap(N, threads=threads, device=device)

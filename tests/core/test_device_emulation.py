@@ -242,7 +242,7 @@ def test_a_retraction_rebuilds_the_map_on_its_device(backend: emulation.Emulated
     """The retract window rebuilds a map from an in-memory snapshot: on the map's own device,
     with the CPU's digest."""
     from mcsm import wire
-    from mcsm.state import MapState
+    from mcsm.map.state import MapState
 
     rng = np.random.default_rng(20261207)
     n = 24

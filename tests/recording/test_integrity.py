@@ -28,6 +28,7 @@ from mcsm.cli import (
 from mcsm.cli import main as mcsm_main
 from mcsm.core import ARITHMETIC_VERSION
 from mcsm.errors import McsmError
+from mcsm.map.state import MapState
 from mcsm.recording import (
     INPUT_TOPICS,
     TOPIC_CHECKPOINT,
@@ -39,7 +40,6 @@ from mcsm.recording import (
     replay,
     schema_bytes,
 )
-from mcsm.state import MapState
 from mcsm_client.client import MapClient
 
 from tests.recording.test_recording import record_session

@@ -11,6 +11,7 @@ from mcap.reader import NonSeekingReader, make_reader
 from mcsm import StochasticMap, wire
 from mcsm.cli import main as mcsm_main
 from mcsm.core.quat import qexp
+from mcsm.map.state import MapState
 from mcsm.recording import (
     INPUT_TOPICS,
     TOPIC_CHECKPOINT,
@@ -24,7 +25,6 @@ from mcsm.recording import (
     replay,
     schema_bytes,
 )
-from mcsm.state import MapState
 from mcsm_client.process import loopback_endpoint
 
 RECORDINGS = Path(__file__).resolve().parents[2] / "recordings"

@@ -16,9 +16,9 @@ import pytest
 from jsonschema import Draft202012Validator
 from mcap.records import Message
 from mcsm import recording, snapchunks
-from mcsm.carry import decode_snapshot
 from mcsm.cli import EXIT_OK, EXIT_USAGE
 from mcsm.cli import main as mcsm_main
+from mcsm.map.carry import decode_snapshot
 from mcsm.recording import (
     TOPIC_SNAPSHOT,
     TOPIC_SNAPSHOT_PART,
@@ -230,8 +230,8 @@ def test_a_map_over_the_window_budget_is_not_copied_for_the_window(
     dropped at once; it is no longer taken (no whole-map copy every --snapshot-every
     operations), and the window is the same as when it was taken and dropped."""
     from mcsm.core.smap import StochasticMap
-    from mcsm.history import History
-    from mcsm.state import MapState
+    from mcsm.map.history import History
+    from mcsm.map.state import MapState
 
     def run(name: str) -> tuple[list[tuple[int, int]], str, list[int]]:
         calls: list[int] = []  # frames of the map at each snapshot

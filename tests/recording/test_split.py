@@ -18,12 +18,14 @@ from typing import Any
 import numpy as np
 import pytest
 from mcap.reader import make_reader
-from mcsm import StochasticMap, ops, wire
+from mcsm import StochasticMap, wire
 from mcsm.cli import EXIT_USAGE
 from mcsm.cli import main as mcsm_main
 from mcsm.errors import InvalidOperation
-from mcsm.history import nbytes
 from mcsm.lanes import Full, Lanes
+from mcsm.map import ops
+from mcsm.map.history import nbytes
+from mcsm.map.state import MapState
 from mcsm.recording import (
     ChunkPerInputWriter,
     Recorder,
@@ -33,7 +35,6 @@ from mcsm.recording import (
     replay,
 )
 from mcsm.recset import resolve
-from mcsm.state import MapState
 
 from tests.recording.test_recording import at
 
@@ -328,7 +329,7 @@ def test_reads_go_first_and_the_queue_is_bounded_in_bytes() -> None:
 
 
 def test_the_id_memory_keeps_order_acks_and_verdicts_compactly() -> None:
-    from mcsm.idmemory import IdMemory
+    from mcsm.map.idmemory import IdMemory
 
     m = IdMemory(10)
     v = wire.Verdict("accepted", 1.5, 6, 12.59, "", 7)

@@ -1,6 +1,6 @@
-"""Server-side deferral of first closures (``mcsm serve --gate-defer``, :mod:`mcsm.deferral`).
+"""Server-side deferral of first closures (``mcsm serve --gate-defer``, :mod:`mcsm.map.deferral`).
 
-The policy runs inside :class:`mcsm.state.MapState`, so the live server, replay and
+The policy runs inside :class:`mcsm.map.state.MapState`, so the live server, replay and
 ``--restore`` decide every held closure by the same code. Checked here: it decides exactly as
 the measured client-side :class:`mcsm_client.outliers.DeferringMap`; a held closure is
 ``pending`` and is applied when a second one agrees, rejected when it disagrees, released on
@@ -20,10 +20,10 @@ from typing import Any
 import numpy as np
 import pytest
 from mcsm import StochasticMap, wire
-from mcsm.deferral import DeferOptions
 from mcsm.errors import InvalidOperation
+from mcsm.map.deferral import DeferOptions
+from mcsm.map.state import MapState
 from mcsm.recording import Recorder, RecordingReader, replay
-from mcsm.state import MapState
 from mcsm_client.client import MapClient
 from mcsm_client.outliers import DeferringMap, Ledger, Record
 

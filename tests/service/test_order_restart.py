@@ -17,8 +17,9 @@ from typing import Any
 
 import numpy as np
 import zenoh
-from mcsm import StochasticMap, ops, wire
+from mcsm import StochasticMap, wire
 from mcsm.errors import McsmError, RequestIdReused
+from mcsm.map import ops
 from mcsm_client.client import MapClient
 
 from tests.service.daemon_util import Daemon, noisy_at, start_daemon
@@ -175,8 +176,8 @@ def test_client_streams_across_sigkill_and_restore(tmp_path: Path,
 def test_id_memory_is_bounded_by_time_and_count() -> None:
     """Ids are forgotten after id_ttl_s (receive times, so a replayed memory ages the same
     way) and beyond lru_size; a remembered id with another request raises RequestIdReused."""
+    from mcsm.map.state import DEFAULT_ID_TTL_S, DEFAULT_LRU, MapState
     from mcsm.recording import decode_input
-    from mcsm.state import DEFAULT_ID_TTL_S, DEFAULT_LRU, MapState
 
     assert DEFAULT_ID_TTL_S >= 300 and DEFAULT_LRU >= 100_000
     rng = np.random.default_rng(9105)

@@ -113,7 +113,7 @@ def test_a_reinstated_update_stays_in_when_an_earlier_one_is_retracted() -> None
     """Reinstating puts an update in as trusted; a later retraction of an earlier input
     re-applies it, still trusted and still ``reinstated`` (in process, no server)."""
     from mcsm import wire
-    from mcsm.state import MapState
+    from mcsm.map.state import MapState
 
     ops = _inputs(np.random.default_rng(20261127))
     st = MapState("default", StochasticMap(N), snapshot_every=4, snapshots_kept=10)

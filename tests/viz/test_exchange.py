@@ -14,8 +14,8 @@ import gtsam
 import numpy as np
 import pytest
 from mcsm import StochasticMap, cli, wire
+from mcsm.map.state import MapState
 from mcsm.recording import Recorder, decode_input
-from mcsm.state import MapState
 from scipy.spatial.transform import Rotation
 
 from tests.helpers import gaussian_at

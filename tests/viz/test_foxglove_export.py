@@ -166,8 +166,8 @@ def test_export_of_a_recording_with_state_snapshots(tmp_path: Path) -> None:
     """A recording holding state snapshots (mcsm serve --disk-snapshot-every) exports: the
     snapshots are verified by replay and draw nothing of their own."""
     from mcsm import StochasticMap, wire
+    from mcsm.map.state import MapState
     from mcsm.recording import Recorder, decode_input
-    from mcsm.state import MapState
 
     from tests.helpers import random_at
 

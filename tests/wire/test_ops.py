@@ -1,5 +1,5 @@
-"""The table of operations (``mcsm.ops``) against the codec, the schemas and ``KEYS.md``: every
-operation is named once and everything else agrees with the table."""
+"""The table of operations (``mcsm.map.ops``) against the codec, the schemas and ``KEYS.md``:
+every operation is named once and everything else agrees with the table."""
 
 from __future__ import annotations
 
@@ -9,8 +9,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from mcsm import ops, wire
+from mcsm import wire
 from mcsm.errors import BadMessage, Forbidden, McsmError
+from mcsm.map import ops
 from mcsm.replication import TAKEOVER
 
 from tests.wire_cases import good_samples
@@ -40,6 +41,15 @@ ARGS: dict[str, tuple[Any, ...]] = {
 
 def test_every_operation_has_its_arguments_here() -> None:
     assert set(ARGS) == set(ops.OPS)
+
+
+def test_the_wires_request_leaves_are_the_tables() -> None:
+    """The codec routes keys from plain data (it knows no table): the leaves it lists, their
+    order (the error message's) and which take a namespace are exactly the table's."""
+    assert list(wire.REQUEST_LEAVES) == list(ops.BY_LEAF)
+    assert dict(wire.REQUEST_LEAVES) == {
+        leaf: served[0].namespaced for leaf, served in ops.BY_LEAF.items()}
+    assert all(len({o.namespaced for o in served}) == 1 for served in ops.BY_LEAF.values())
 
 
 @pytest.mark.parametrize("name", sorted(ops.OPS))

@@ -23,21 +23,31 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
 
 from mcsm.core import kernel, relin
 from mcsm.core.factors import IDENTITY, FactorHistory, Prior
+from mcsm.core.forest import Store
 from mcsm.core.gate import chi2_quantile
 from mcsm.core.storage import to_rows
 from mcsm.errors import InvalidOperation, McsmError, NumericalError
 
-if TYPE_CHECKING:
-    from mcsm.core.smap import StochasticMap
-
 Array = npt.NDArray[np.float64]
+
+
+class Relinearizable(Protocol):
+    """What this module reads and writes of a map: its components, its spare buffer, its
+    factor history and how it stores a component (:class:`mcsm.core.smap.StochasticMap` is
+    one; it calls this module, which therefore does not import it)."""
+
+    _comps: dict[int, Store]
+    _spare: Array | None
+    factor_history: FactorHistory | None
+
+    def _store(self, frames: list[str], is_point: list[bool], rows: Array) -> Store: ...
 
 DEFAULT_HISTORY_BYTES = 8 * 2**20
 """The history's default bound: about 30,000 inputs with their frames (Victoria Park: 10,608
@@ -150,14 +160,14 @@ def _key(h: FactorHistory, cid: int) -> int:
             + cid * 0x94D049BB133111EB + 0x2545F4914F6CDD1D) & _MASK
 
 
-def host_rows(smap: StochasticMap, cid: int) -> tuple[Array, npt.NDArray[np.uint8]]:
+def host_rows(smap: Relinearizable, cid: int) -> tuple[Array, npt.NDArray[np.uint8]]:
     """Component ``cid``'s edges as host rows ``(M, 7, N)`` (a copy) and its point flags: the
     only way this module reads a component, whatever memory it lives in."""
     c = smap._comps[cid]
     return to_rows(c.edges()), np.array(c.point_list(), dtype=np.uint8)
 
 
-def replace_rows(smap: StochasticMap, cid: int, rows: Array) -> None:
+def replace_rows(smap: Relinearizable, cid: int, rows: Array) -> None:
     """Component ``cid`` with the same frames and the edges ``rows`` (host, ``(M, 7, N)``):
     the only way this module writes one. A map on a device gets the rows uploaded (one
     whole-component transfer: the redraw itself runs in the CPU kernel, docs/kernel.md)."""
@@ -166,7 +176,7 @@ def replace_rows(smap: StochasticMap, cid: int, rows: Array) -> None:
     smap._spare = None
 
 
-def estimates(smap: StochasticMap, h: FactorHistory, cid: int, ids: npt.NDArray[np.int64],
+def estimates(smap: Relinearizable, h: FactorHistory, cid: int, ids: npt.NDArray[np.int64],
               rows: Array, flags: npt.NDArray[np.uint8]) -> Array:
     """Estimates of variables ``ids`` (of group ``cid``) in its root's frame: the map's means
     for frames it holds (from its host ``rows``), the recorded ones for removed frames."""
@@ -211,7 +221,7 @@ def active_coordinates(rows: Array, flags: npt.NDArray[np.uint8]) -> tuple[int, 
     return masks[0], masks[1]
 
 
-def _problem(smap: StochasticMap, h: FactorHistory, cid: int, ids: npt.NDArray[np.int64],
+def _problem(smap: Relinearizable, h: FactorHistory, cid: int, ids: npt.NDArray[np.int64],
              fmask: npt.NDArray[np.bool_], priors: list[Prior], kept: npt.NDArray[np.uint8]
              ) -> relin.Problem:
     rows, flags = host_rows(smap, cid)
@@ -244,7 +254,7 @@ def _problem(smap: StochasticMap, h: FactorHistory, cid: int, ids: npt.NDArray[n
         pdata=np.concatenate(pdata) if pdata else np.zeros(0))
 
 
-def why_not(smap: StochasticMap, cid: int) -> str:
+def why_not(smap: Relinearizable, cid: int) -> str:
     """Why component ``cid`` cannot be relinearised ("" if it can)."""
     h = smap.factor_history
     if h is None:
@@ -262,7 +272,7 @@ def why_not(smap: StochasticMap, cid: int) -> str:
     return ""
 
 
-def relinearize_component(smap: StochasticMap, cid: int) -> ComponentRelin:
+def relinearize_component(smap: Relinearizable, cid: int) -> ComponentRelin:
     """Solve component ``cid`` over its whole history and redraw its edges (see the module
     docstring). A skipped component changes nothing; a failure raises and changes nothing."""
     c = smap._comps[cid]
@@ -297,7 +307,7 @@ def relinearize_component(smap: StochasticMap, cid: int) -> ComponentRelin:
                           st.iterations, st.cost_before, st.cost_after, st.trimmed)
 
 
-def relinearize(smap: StochasticMap, cids: list[int], trigger: str) -> RelinReport:
+def relinearize(smap: Relinearizable, cids: list[int], trigger: str) -> RelinReport:
     """Relinearise components ``cids`` in order; the report. A component whose solve fails is
     left as it was and reported as skipped (never raised: an automatic relinearisation runs
     after its update was applied)."""
@@ -312,7 +322,7 @@ def relinearize(smap: StochasticMap, cids: list[int], trigger: str) -> RelinRepo
     return RelinReport(trigger, tuple(comps), time.perf_counter() - t0)
 
 
-def marginalise(smap: StochasticMap) -> int:
+def marginalise(smap: Relinearizable) -> int:
     """While the history is over its bound: marginalise the oldest quarter of the removed
     variables of the component holding the oldest one into a dense prior on the variables
     they touch (at their current estimates), until the history is at 3/4 of its bound or no
@@ -365,7 +375,7 @@ def _libc() -> Any:
 _LIBC = _libc()
 
 
-def _marginalise_set(smap: StochasticMap, h: FactorHistory, cid: int,
+def _marginalise_set(smap: Relinearizable, h: FactorHistory, cid: int,
                      s: npt.NDArray[np.int64]) -> None:
     in_s = np.zeros(h.vars.n, dtype=bool)
     in_s[s] = True

@@ -37,10 +37,11 @@ from typing import Any
 
 import numpy as np
 
-from mcsm import ops, wire
+from mcsm import wire
 from mcsm.core.smap import StochasticMap
-from mcsm.deferral import Deferral, DeferState
 from mcsm.errors import InvalidOperation, McsmError
+from mcsm.map import ops
+from mcsm.map.deferral import Deferral, DeferState
 
 DEFAULT_SNAPSHOT_EVERY = 100
 """Operations between two snapshots of a map (``mcsm serve --snapshot-every``)."""

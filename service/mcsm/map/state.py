@@ -1,6 +1,6 @@
 """The state a recording reproduces: one named map, its sequence number, the request ids it
-remembers (idempotency), its verdict counts, its retract window (:mod:`mcsm.history`) and,
-with ``--gate-defer``, its deferral policy (:mod:`mcsm.deferral`).
+remembers (idempotency), its verdict counts, its retract window (:mod:`mcsm.map.history`) and,
+with ``--gate-defer``, its deferral policy (:mod:`mcsm.map.deferral`).
 
 The live server and replay (:func:`mcsm.recording.replay`) both apply inputs through
 :meth:`MapState.apply`, so a replayed map is built by the same code path as the live one.
@@ -13,16 +13,17 @@ from collections import Counter
 from dataclasses import replace
 from typing import Any
 
-from mcsm import ops, wire
+from mcsm import wire
 from mcsm.core.smap import StochasticMap
-from mcsm.deferral import DeferOptions, Deferral, DeferState
 from mcsm.errors import InvalidOperation, McsmError, RequestIdReused
-from mcsm.history import DEFAULT_SNAPSHOT_EVERY, DEFAULT_SNAPSHOTS_KEPT, History
-from mcsm.idmemory import IdColumns, IdMemory
+from mcsm.map import ops
+from mcsm.map.deferral import DeferOptions, Deferral, DeferState
+from mcsm.map.history import DEFAULT_SNAPSHOT_EVERY, DEFAULT_SNAPSHOTS_KEPT, History
+from mcsm.map.idmemory import IdColumns, IdMemory
 
 DEFAULT_LRU = 100_000
 """Request ids (with their acks) each map remembers at most (about 25 MB at most:
-:mod:`mcsm.idmemory`)."""
+:mod:`mcsm.map.idmemory`)."""
 DEFAULT_ID_TTL_S = 600.0
 """Seconds a request id is remembered (ten minutes: a server restart takes 1-8 s)."""
 
@@ -243,7 +244,7 @@ class MapState:
 
     def id_columns(self) -> IdColumns:
         """The remembered ids, oldest first, as columns (:meth:`IdMemory.columns`): what a
-        recorded snapshot holds (:func:`mcsm.carry.encode_ids`)."""
+        recorded snapshot holds (:func:`mcsm.map.carry.encode_ids`)."""
         return self._acks.columns()
 
     def import_ids(self, rows: list[Any], *, replace_all: bool = False) -> None:

@@ -16,7 +16,7 @@ core refuses never leaves a held closure half released.
 Determinism: :class:`Deferral` is a pure function of its (immutable) :class:`DeferState`, the
 map and the update it is given; the held closure is decided inside the processing of a later
 update, by the same code in the live server, in replay and in a retraction's re-application
-(:mod:`mcsm.history`), so all three reproduce every verdict and digest. Its state is part of
+(:mod:`mcsm.map.history`), so all three reproduce every verdict and digest. Its state is part of
 the in-memory snapshots (retract) and of the recorded ones (``--restore``).
 
 The cycle test decides the map's state, so it computes like the gate: the cycle's samples,

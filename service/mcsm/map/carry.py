@@ -24,11 +24,12 @@ from typing import Any
 
 import numpy as np
 
-from mcsm import ops, wire
-from mcsm.deferral import DeferState
+from mcsm import wire
 from mcsm.errors import McsmError
-from mcsm.history import History, Logged
-from mcsm.idmemory import IdColumns
+from mcsm.map import ops
+from mcsm.map.deferral import DeferState
+from mcsm.map.history import History, Logged
+from mcsm.map.idmemory import IdColumns
 
 WINDOW_FORMAT = 1
 """Version of the ``window`` layout of a snapshot record."""

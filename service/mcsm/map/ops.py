@@ -8,13 +8,16 @@ frames, and what its idempotency fingerprint covers. Read-only operations carry 
 that answers them instead.
 
 The server routes and decodes with :func:`decode_request`, answers or applies by looking the
-operation up in :data:`OPS`; :class:`mcsm.state.MapState` applies through :attr:`Operation.
+operation up in :data:`OPS`; :class:`mcsm.map.state.MapState` applies through :attr:`Operation.
 change`; the recorder and replay take their topics from :data:`INPUT_TOPICS`; the client builds
 its requests from the table. Adding an operation is one entry here (plus its wire dataclass and
 codec, its schema, and a client method); see CONTRIBUTING.md.
 
-Imports point one way: this module needs :mod:`mcsm.wire` and :mod:`mcsm.errors` only (the
-map and the server's state are passed in), so clients may import it.
+Imports point one way: this module needs :mod:`mcsm.wire`, :mod:`mcsm.core`,
+:mod:`mcsm.errors` and the gate (:mod:`mcsm.map.deferral`) only; the map and the server's
+state are passed in (:class:`MapState` here is the protocol they meet), so clients may import
+it. Routing a key needs no table: :data:`mcsm.wire.REQUEST_LEAVES` lists the leaves as plain
+data, and the tests check that this table serves exactly those.
 """
 
 from __future__ import annotations
@@ -27,13 +30,12 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from mcsm import wire
-from mcsm.core.names import is_namespace, namespace_of
-from mcsm.deferral import gated_update
-from mcsm.errors import BadMessage, Forbidden, McsmError, UnknownFrame
+from mcsm.core.names import namespace_of
+from mcsm.errors import Forbidden, McsmError, UnknownFrame
+from mcsm.map.deferral import gated_update
 
 if TYPE_CHECKING:
     from mcsm.core.smap import StochasticMap
-    from mcsm.state import MapState
 
 
 @dataclass(frozen=True)
@@ -49,12 +51,31 @@ class Change:
     """The relinearisation it ran (:meth:`mcsm.core.relinearize.RelinReport.to_dict`)."""
 
 
+class MapState(Protocol):
+    """What an operation reads of a map's state (:class:`mcsm.map.state.MapState` is one: it
+    applies through this table, which therefore does not import it)."""
+
+    @property
+    def name(self) -> str: ...
+    @property
+    def map(self) -> StochasticMap: ...
+    @property
+    def seq(self) -> int: ...
+    @property
+    def last_changed(self) -> dict[str, wire.Verdict]: ...
+
+    def verdict_of(self, request_id: str) -> wire.Ack: ...
+
+
 class Context(Protocol):
     """What a read-only operation's answer may ask of the server."""
 
     server_id: str
 
-    def info(self, st: MapState) -> wire.MapInfo: ...
+    def info(self, st: Any) -> wire.MapInfo:
+        """The map's info; ``st`` is the server's :class:`mcsm.map.state.MapState` (typed
+        ``Any`` here so that the server's own signature, which names the class, fits)."""
+        ...
 
 
 def _no_check(req: Any, namespace: str, key: str) -> None:
@@ -106,7 +127,7 @@ class Operation:
     retract window's rebuild all call it)."""
     retract: bool | None = None
     """True for retract, False for reinstate: the operation rewrites the retract window
-    (:mod:`mcsm.history`) instead of calling ``change``."""
+    (:mod:`mcsm.map.history`) instead of calling ``change``."""
     retractable: bool = False
     """Inputs of this operation can be retracted and reinstated."""
     fingerprint_parts: Callable[[Any], list[bytes | memoryview]] | None = None
@@ -326,28 +347,15 @@ def get(name: str) -> Operation:
 
 
 def route(keys: wire.Keys, key: str) -> tuple[str, str]:
-    """``(leaf, namespace)`` of a concrete request key of the map ``keys``: ``("update",
-    "robot1")`` for ``.../update/robot1``, ``("info", "")`` for ``.../info``.
+    """``(leaf, namespace)`` of a concrete request key of the map ``keys``
+    (:func:`mcsm.wire.route`, from :data:`mcsm.wire.REQUEST_LEAVES`, which this table serves).
 
     Raises
     ------
     BadMessage
-        If ``key`` is not one of the map's request keys (wildcards included: a request must
-        name one concrete key).
+        If ``key`` is not one of the map's request keys (wildcards included).
     """
-    head = keys.base + "/"
-    rest = key[len(head):] if key.startswith(head) else ""
-    leaf, sep, ns = rest.partition("/")
-    served = BY_LEAF.get(leaf)
-    if served is not None:
-        if not sep:
-            return leaf, ""
-        if served[0].namespaced and is_namespace(ns):
-            return leaf, ns
-    plain = [lf for lf, o in BY_LEAF.items() if not o[0].namespaced]
-    spaced = [lf for lf, o in BY_LEAF.items() if o[0].namespaced]
-    raise BadMessage("key", f"one of {keys.base}/{{{','.join(spaced)}}}[/<namespace>], "
-                     f"{', '.join(plain)} (no wildcards)", wire.short(key))
+    return wire.route(keys, key)
 
 
 def decode_request(leaf: str, payload: bytes, n_samples: int) -> tuple[Operation, Any]:

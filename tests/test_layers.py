@@ -1,0 +1,132 @@
+"""The layers of CONTRIBUTING.md ("Layers"), read from the code's own imports (lazy and
+type-checking-only imports included): every import of ``mcsm.core``, ``mcsm.wire`` and
+``mcsm.map`` points down, no ``mcsm`` module imports ``mcsm_client``, and the import graph of
+``mcsm`` and ``mcsm_client`` has no cycle but the one still allowed (server <-> replication)."""
+
+from __future__ import annotations
+
+import ast
+from functools import cache
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = {"mcsm": ROOT / "service" / "mcsm", "mcsm_client": ROOT / "clients" / "mcsm_client"}
+# what each layer may import (besides itself); mcsm.errors is the shared bottom
+ALLOWED = {"mcsm.core": ("mcsm.errors",),
+           "mcsm.wire": ("mcsm.errors", "mcsm.core"),
+           "mcsm.map": ("mcsm.errors", "mcsm.core", "mcsm.wire")}
+ALLOWED_CYCLES = [{"mcsm.server", "mcsm.replication"}]  # to be broken (issue 26)
+
+
+def _modules() -> dict[str, Path]:
+    mods = {}
+    for root in PACKAGES.values():
+        for f in root.rglob("*.py"):
+            name = ".".join(f.relative_to(root.parent).with_suffix("").parts)
+            mods[name.removesuffix(".__init__")] = f
+    return mods
+
+
+@cache
+def _graph() -> dict[str, set[str]]:
+    """Each module's imports of ``mcsm``/``mcsm_client`` modules (read once per session)."""
+    mods = _modules()
+
+    def resolve(name: str) -> str:
+        while name and name not in mods:
+            name = name.rpartition(".")[0]
+        return name
+
+    edges: dict[str, set[str]] = {}
+    for m, f in mods.items():
+        out = set()
+        base = m.split(".") if f.name == "__init__.py" else m.split(".")[:-1]
+        for node in ast.walk(ast.parse(f.read_text())):
+            if isinstance(node, ast.Import):
+                out |= {resolve(a.name) for a in node.names if a.name.split(".")[0] in PACKAGES}
+            elif isinstance(node, ast.ImportFrom):
+                mod = node.module or ""
+                if node.level:
+                    mod = ".".join(base[: len(base) - node.level + 1] + ([mod] if mod else []))
+                if mod.split(".")[0] in PACKAGES:
+                    out |= {resolve(f"{mod}.{a.name}") if f"{mod}.{a.name}" in mods
+                            else resolve(mod) for a in node.names}
+        edges[m] = out - {m, ""}
+    return edges
+
+
+def _cycles(edges: dict[str, set[str]]) -> list[set[str]]:
+    """Strongly connected components of more than one module (iterative Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    out: list[set[str]] = []
+    for start in sorted(edges):
+        if start in index:
+            continue
+        work = [(start, iter(sorted(edges[start])))]
+        index[start] = low[start] = len(index)
+        stack.append(start)
+        on.add(start)
+        while work:
+            v, it = work[-1]
+            w = next(it, None)
+            if w is not None:
+                if w not in index:
+                    index[w] = low[w] = len(index)
+                    stack.append(w)
+                    on.add(w)
+                    work.append((w, iter(sorted(edges.get(w, ())))))
+                elif w in on:
+                    low[v] = min(low[v], index[w])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[v])
+            if low[v] == index[v]:
+                comp = set()
+                while True:
+                    w = stack.pop()
+                    on.discard(w)
+                    comp.add(w)
+                    if w == v:
+                        break
+                if len(comp) > 1:
+                    out.append(comp)
+    return out
+
+
+def _layer(m: str) -> str | None:
+    return next((lay for lay in ALLOWED if m == lay or m.startswith(lay + ".")), None)
+
+
+def test_the_lower_layers_import_only_downwards() -> None:
+    edges = _graph()
+    assert {"mcsm.core.smap", "mcsm.wire.codec", "mcsm.map.ops"} <= set(edges)  # it reads them
+    bad = []
+    for m, deps in sorted(edges.items()):
+        lay = _layer(m)
+        if lay is None:
+            continue
+        ok = (lay, *ALLOWED[lay])
+        bad += [(m, d) for d in sorted(deps)
+                if not any(d == a or d.startswith(a + ".") for a in ok)]
+    assert bad == []
+
+
+def test_no_mcsm_module_imports_the_client_package() -> None:
+    edges = _graph()
+    assert [(m, d) for m, deps in edges.items() if m.split(".")[0] == "mcsm"
+            for d in deps if d.split(".")[0] == "mcsm_client"] == []
+
+
+def test_no_import_cycle_but_the_one_allowed() -> None:
+    cycles = _cycles(_graph())
+    assert [c for c in cycles if c not in ALLOWED_CYCLES] == []
+
+
+def test_the_cycle_finder_finds_a_cycle() -> None:
+    """The check above would fail on a cycle (a graph with one, and one without)."""
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [{"a", "b", "c"}]
+    assert _cycles({"a": {"b"}, "b": set()}) == []
