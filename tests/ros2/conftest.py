@@ -42,7 +42,12 @@ class Reference:
 def ros_env() -> dict[str, str]:
     """Fast DDS on this host only (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, no static peers),
     in a ROS domain drawn for this run (so parallel runs do not meet)."""
-    domain = random.Random(os.getpid() ^ int.from_bytes(os.urandom(4), "little")).randrange(1, 101)
+    rng = random.Random(os.getpid() ^ int.from_bytes(os.urandom(4), "little"))
+    # under pytest-xdist (gw0, gw1, ...) each worker takes its own residue, so the workers of one
+    # run never share a domain
+    worker = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0")[2:] or 0)
+    workers = max(1, int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")))
+    domain = 1 + rng.randrange(100 // workers) * workers + worker % workers
     return {"ROS_DOMAIN_ID": str(domain), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
             "ROS_STATIC_PEERS": "", "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp"}
 
