@@ -388,7 +388,8 @@ def plot(path: Path, name: str, curves: list[tuple[str, str, int, int, float]]) 
 
     fig, ax = plt.subplots(figsize=(9, 5.5))
     labels = list(dict.fromkeys(c[1] for c in curves))
-    for label in labels:
+    colours = plt.get_cmap("tab20")(np.linspace(0.0, 1.0, 20))
+    for n, label in enumerate(labels):
         pts: dict[int, list[float]] = {}
         for _, lab, _, k, v in curves:
             if lab == label and np.isfinite(v):
@@ -396,7 +397,8 @@ def plot(path: Path, name: str, curves: list[tuple[str, str, int, int, float]]) 
         if not pts:
             continue
         ks = sorted(pts)
-        ax.plot(ks, [np.median(pts[k]) for k in ks], marker=".", lw=1.2,
+        ax.plot(ks, [np.median(pts[k]) for k in ks], marker="os^vD<>"[n % 7], ms=3.5, lw=1.2,
+                color=colours[(2 * n) % 20 + (n // 10) % 2],
                 ls="--" if label.startswith(("GTSAM", "EKF")) else "-", label=label)
     ax.set_yscale("log")
     ax.set_xlabel("step (poses so far)")
@@ -425,6 +427,7 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     ap.add_argument("--tag", default="", help="suffix of the output files")
     ap.add_argument("--no-plot", action="store_true", help="skip the PNG")
     ap.add_argument("--no-tuned", action="store_true", help="skip the tuned iSAM2 row")
+    ap.add_argument("--replot", action="store_true", help="redraw the PNGs from the CSVs")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "realdata")
     args = ap.parse_args(argv)
     configs = CONFIGS
@@ -442,6 +445,15 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     args.seeds = args.seeds or ([1] if args.quick else [1, 2, 11])
     args.out.mkdir(parents=True, exist_ok=True)
     tag = f"_{args.tag}" if args.tag else ""
+    if args.replot:
+        for name in args.datasets:
+            path = args.out / f"{name}{tag}_curves.csv"
+            if path.is_file():
+                with open(path) as f:
+                    got = [(r["dataset"], r["estimator"], int(r["seed"]), int(r["step"]),
+                            float(r["error_m"])) for r in csv.DictReader(f)]
+                plot(args.out / f"{name}{tag}_curves.png", name, got)
+        return []
     cmd = "benchmarks/realdata.py " + " ".join(argv if argv is not None else sys.argv[1:])
     all_rows: list[dict[str, Any]] = []
     for name in args.datasets:

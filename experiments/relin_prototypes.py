@@ -25,7 +25,9 @@ chosen steps
    points: ``p + delta``) and writes them as the component's root->frame edges through
    ``snapshot()`` / ``from_snapshot`` (same options, adaptive-inflation state kept).
 
-Triggers: ``"periodic"`` (every ``every`` steps) or ``"nis"`` (a tested update of the step had
+Triggers: ``"periodic"`` (every ``every`` steps, the first after ``offset`` steps: by default
+half a period, so that errors sampled every ``every`` steps fall between two
+relinearisations, not right after one) or ``"nis"`` (a tested update of the step had
 an NIS above the chi-square ``nis_quantile`` for its dof, 9.21 for 2 dof at 0.99, at least
 ``min_gap`` steps after the last one).
 
@@ -212,7 +214,8 @@ class BatchRelinearizer(Hook):
     ----------
     problem : the data set (anchor, dimension)
     trigger : ``"periodic"`` or ``"nis"``
-    every : steps between periodic relinearisations
+    every, offset : steps between periodic relinearisations, and the step of the first one
+        (default ``every // 2``)
     nis_quantile, min_gap : the NIS trigger's chi-square quantile (of one tested update's NIS
         for its dof) and the least number of steps between two relinearisations
     include_rejected : also put the inputs the gate refused into the batch
@@ -220,13 +223,15 @@ class BatchRelinearizer(Hook):
     """
 
     def __init__(self, problem: Problem, *, trigger: str = "nis", every: int = 500,
-                 nis_quantile: float = 0.99, min_gap: int = 50, include_rejected: bool = False,
-                 seed: int = 0, max_iterations: int = 10) -> None:
+                 offset: int | None = None, nis_quantile: float = 0.99, min_gap: int = 50,
+                 include_rejected: bool = False, seed: int = 0,
+                 max_iterations: int = 10) -> None:
         if trigger not in ("periodic", "nis"):
             raise ValueError("trigger must be 'periodic' or 'nis'")
         self.p = problem
         self.trigger = trigger
         self.every = every
+        self.offset = every // 2 if offset is None else offset
         self.nis_quantile = nis_quantile
         self.min_gap = min_gap
         self.include_rejected = include_rejected
@@ -255,8 +260,10 @@ class BatchRelinearizer(Hook):
         return smap, result
 
     def end_step(self, smap: Any, k: int, pose: int, run: RunResult) -> Any:
-        due = ((k + 1) % self.every == 0) if self.trigger == "periodic" else \
-            (self.fired and k - self.last >= self.min_gap)
+        if self.trigger == "periodic":
+            due = (k + 1) % self.every == self.offset % self.every
+        else:
+            due = self.fired and k - self.last >= self.min_gap
         if not due or k == 0:
             return smap
         self.fired = False
