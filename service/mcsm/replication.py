@@ -228,6 +228,7 @@ class PrimaryLink:
                         "disk_snapshot_every": o.disk_snapshot_every,
                         "snapshot_every": st.history.snapshot_every,
                         "snapshots_kept": st.history.snapshots_kept,
+                        "retract_window_bytes": st.history.max_bytes,
                         "gate_defer": (None if st.deferral is None
                                        else st.deferral.options.to_dict())}
         s = server.session
@@ -559,7 +560,8 @@ class Follower:
             st = MapState(self.name, smap, o.lru_size, o.id_ttl_s,
                           snapshot_every=int(config["snapshot_every"]),
                           snapshots_kept=int(config["snapshots_kept"]),
-                          gate_defer=DeferOptions.from_dict(config.get("gate_defer")))
+                          gate_defer=DeferOptions.from_dict(config.get("gate_defer")),
+                          retract_window_bytes=config.get("retract_window_bytes"))
             self.checkpoint_every = max(1, int(config["checkpoint_every"]))
             self.disk_snapshot_every = max(0, int(config.get("disk_snapshot_every", 0)))
             rec = self.server.recorder
@@ -577,7 +579,7 @@ class Follower:
         assert st is not None
         try:
             req = decode_input(e.op, e.payload, st.n_samples)
-            ack = st.apply(e.op, req, time_ns=e.recv_ns)
+            ack = st.apply(e.op, req, time_ns=e.recv_ns, payload=e.payload)
         except McsmError as exc:
             self._stop_following(f"input seq {e.seq} ({e.op}) was refused here: "
                                  f"{type(exc).__name__}: {exc}")
