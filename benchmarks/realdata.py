@@ -55,32 +55,35 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 # ---------------------------------------------------------------------------------------------
-# The configurations of the map. "options" go to StochasticMap(N, **options) (threads=1 added);
-# "driver" is experiment code run around the map: {"prototype": "batch", ...} is the batch
-# relinearisation of experiments/relin_prototypes.py (its keyword arguments), {"method":
-# "relinearize", "every": K} calls StochasticMap.relinearize() every K steps, {"mda": K} splits
-# every re-sighting / loop closure into K updates of K x the covariance. "datasets" limits a row.
-# A configuration whose option or method this build does not have is reported as "not
-# available in this build", never dropped. After the relinearisation branch is merged, add the
-# shipped policy's options here (the two "shipped" rows guess its names).
+# The configurations of the map: the shipped StochasticMap with its shipped defaults and named
+# configurations. "options" go to StochasticMap(N, **options) (threads=1 added; a Policy as its
+# plain dict); "driver" is code run around the map: {"method": "relinearize", "every": K} calls
+# StochasticMap.relinearize() every K steps, {"mda": K} splits every re-sighting / loop closure
+# into K updates of K x the covariance. "datasets" limits a row. A configuration whose option or
+# method this build does not have is reported as "not available in this build", never dropped.
+# The batch relinearisation prototypes that came before the shipped one are ``--prototypes``
+# (experiments/relin_prototypes.py).
 # ---------------------------------------------------------------------------------------------
+def _recommended() -> dict[str, Any]:
+    try:
+        from mcsm.core.relinearize import RECOMMENDED
+    except ImportError:  # pragma: no cover - a build without relinearisation
+        return {"nis": 0.95, "regate": 1, "gap": 25}
+    return RECOMMENDED.to_plain()
+
+
+BEFORE = {"gate_scale": None, "history": None, "relinearize": None}
+"""The options before issue 22: the fixed 0.99 gate, no history, no relinearisation."""
+
 CONFIGS: list[dict[str, Any]] = [
     {"name": "mcsm defaults", "options": {}},
-    {"name": "mcsm gate off", "options": {"gate": None}},
-    {"name": "mcsm + batch relin. prototype, NIS-triggered, gate off", "options": {"gate": None},
-     "driver": {"prototype": "batch", "trigger": "nis", "nis_quantile": 0.99, "min_gap": 50},
-     "datasets": ["victoria", "sphere2500"]},
-    {"name": "mcsm + batch relin. prototype, NIS-triggered, gate 0.99",
-     "options": {}, "driver": {"prototype": "batch", "trigger": "nis", "nis_quantile": 0.99,
-                               "min_gap": 50, "include_rejected": True},
-     "datasets": ["victoria", "sphere2500"]},
-    {"name": "mcsm + batch relin. prototype, every 500 steps, gate off", "options": {"gate": None},
-     "driver": {"prototype": "batch", "trigger": "periodic", "every": 500},
-     "datasets": ["victoria", "sphere2500"]},
-    {"name": "mcsm + relinearize() every 500 steps (shipped operation)", "options": {},
-     "driver": {"method": "relinearize", "every": 500}},
-    {"name": "mcsm + shipped relinearisation policy (option names to confirm)",
-     "options": {"relinearize": "auto"}},
+    {"name": "mcsm RECOMMENDED (nis 0.95, regate 1, gap 25)",
+     "options": {"relinearize": _recommended()}},
+    {"name": "mcsm defaults + relinearize() every 500 steps",
+     "options": {}, "driver": {"method": "relinearize", "every": 500}},
+    {"name": "mcsm gate off, no relinearisation",
+     "options": {"gate": None, "history": None, "relinearize": None}},
+    {"name": "mcsm before issue 22 (gate 0.99 fixed, no relinearisation)", "options": BEFORE},
 ]
 
 QUICK_STEPS = {"victoria": 600, "sphere2500": 200, "city10000": 300, "w10000": 150}
@@ -287,7 +290,9 @@ def run_dataset(name: str, args: argparse.Namespace, configs: list[dict[str, Any
                                     error_fn=scorer.map_error, progress=True,
                                     keep_means=seed not in isam_means)
                 fin = map_final(scorer, smap)
-                note = "; ".join(h.describe() for h in hooks if h.describe())
+                note = "; ".join([h.describe() for h in hooks if h.describe()] + (
+                    [f"{res.relins} automatic relinearisations, {res.relin_s:.1f} s"]
+                    if res.relins else []))
                 means = res.sample_means
                 del smap
             if seed not in isam_means and means:

@@ -65,6 +65,8 @@ class RunResult:
     tested: int = 0  # loop closures / re-sightings that met the gate's test
     rejected: int = 0
     errors: int = 0  # McsmError other than a gate rejection
+    relins: int = 0  # automatic relinearisations (the map's policy) and their CPU seconds
+    relin_s: float = 0.0
     nis: list[tuple[int, float, int, str]] = field(default_factory=list)  # step, nis, dof, status
     sample_means: list[Array] = field(default_factory=list)
     pose_means: dict[int, Array] = field(default_factory=dict)  # estimate when it was current
@@ -199,6 +201,10 @@ def run_map(problem: Problem, make: Callable[[], Any], *, n_samples: int, seed: 
                 continue
             for h in hooks:
                 smap, r = h.after(smap, e, x, r)
+            relin = getattr(r, "relin", None)
+            if relin is not None:
+                res.relins += 1
+                res.relin_s += float(getattr(relin, "time_s", 0.0))
             if r.verdict.nis is not None and r.verdict.dof > 0:
                 res.tested += 1
                 res.rejected += r.kind == "rejected"
