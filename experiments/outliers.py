@@ -44,8 +44,10 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -72,6 +74,9 @@ KINDS = ("random", "nearby", "burst")
 RATES = (0.1, 0.2)
 GATE = 0.99  # the gate's quantile in every gated row (--gate)
 LAP = 100  # poses per lap of the simulators
+#: Extra variants (issue 22's gate candidates, experiments/gate_candidates.py): name -> a
+#: function wrapping the gated map (gate GATE); no deferral, no auditor.
+MAP_WRAPPERS: dict[str, Callable[[Any], Any]] = {}
 
 
 # ------------------------------------------------------------------------------- the graphs
@@ -218,6 +223,8 @@ def run_map(graph: PoseGraph, samples: list[Array], variant: str, *, n_samples: 
 
     gate = None if variant == "none" else GATE
     smap = StochasticMap(n_samples, gain="endpoints", inflation=1.002, gate=gate)
+    if variant in MAP_WRAPPERS:
+        smap = MAP_WRAPPERS[variant](smap)
     ledger = Ledger(smap, snapshot_every=100)
     defer = DeferringMap(ledger) if variant in ("defer", "audit") else None
     auditor = Auditor(gate=GATE) if variant in ("audit", "gate-audit") else None
@@ -382,7 +389,7 @@ def pose_graph_rows(name: str, graph: PoseGraph, kind: str, rate: float, seed: i
             extra = f"{int(out.sum())} of {len(loops)} true closures out" + (
                 f"; {extra}" if extra else "")
         label = {"none": "as is", "gate": f"gate {GATE:g}", "defer": "gate+defer",
-                 "gate-audit": "gate+audit", "audit": "gate+defer+audit"}[v]
+                 "gate-audit": "gate+audit", "audit": "gate+defer+audit"}.get(v, v)
         rows.append(Outcome(case, label, a, a / ate_oracle, r, p,
                             float(nees_per_dof(means[1:], covs[1:], truth[1:], idx).mean()),
                             ms, extra))
@@ -446,8 +453,11 @@ def landmark_rows(kind: str, rate: float, seed: int, n_samples: int) -> list[Out
     case = f"landmarks {kind} {int(round(rate * 100))} %"
     odo_cov, laser_cov = cfg.odometry_cov, cfg.laser_cov
 
-    def feed(gate: float | None, oracle: bool) -> tuple[dict[str, float], float, float, float]:
+    def feed(gate: float | None, oracle: bool, wrap: Callable[[Any], Any] | None = None
+             ) -> tuple[dict[str, float], float, float, float]:
         m = StochasticMap(n_samples, gate=gate)
+        if wrap is not None:
+            m = wrap(m)
         draw = np.random.default_rng([seed, 8])
         tp = fp = 0
         t_map = 0.0
@@ -479,8 +489,9 @@ def landmark_rows(kind: str, rate: float, seed: int, n_samples: int) -> list[Out
     ora, _, _, ms_o = feed(None, True)
     rows = []
     gtsam_rows = _landmark_gtsam(sc, bad, case, ora["rms_m"])
-    for gate, label in ((None, "as is"), (GATE, f"gate {GATE:g}")):
-        s, r, p, ms = feed(gate, False)
+    for gate, label, wrap in ((None, "as is", None), (GATE, f"gate {GATE:g}", None),
+                              *((GATE, k, w) for k, w in MAP_WRAPPERS.items())):
+        s, r, p, ms = feed(gate, False, wrap)
         rows.append(Outcome(case, label, s["rms_m"], s["rms_m"] / ora["rms_m"],
                             0.0 if gate is None else r, p, s["nees_per_dof"], ms))
     rows.append(Outcome(case, "oracle", ora["rms_m"], 1.0, nees=ora["nees_per_dof"],
@@ -646,7 +657,8 @@ def targets(rows: list[Outcome]) -> list[str]:
     out = ["| method | cases | recall >= 0.99 | precision >= 0.90 | ATE <= 1.1x oracle | "
            "NEES/dof <= 2 | misses |", "|---|---|---|---|---|---|---|"]
     methods = sorted({r.method for r in rows if r.method.startswith("gate ")})
-    for method in (*methods, "gate+defer", "gate+audit", "gate+defer+audit", "GTSAM GNC"):
+    for method in (*methods, "gate+defer", "gate+audit", "gate+defer+audit", *MAP_WRAPPERS,
+                   "GTSAM GNC"):
         sel = [r for r in rows if r.method == method and not r.case.startswith("landmarks")
                and not r.case.endswith("clean")]
         if not sel:
