@@ -27,7 +27,7 @@ import msgpack
 import numpy as np
 from mcsm import StochasticMap, wire
 from mcsm.core import relin
-from mcsm.recording import encode_snapshot
+from mcsm.map.carry import encode_snapshot
 from mcsm_client.datasets import gtsam_data_dir, read_dataset
 from mcsm_client.players import play
 

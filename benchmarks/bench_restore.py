@@ -20,8 +20,10 @@ from pathlib import Path
 
 import numpy as np
 from mcsm import StochasticMap, wire
+from mcsm.log.replay import replay
+from mcsm.log.topics import decode_input
+from mcsm.log.writer import Recorder
 from mcsm.map.state import MapState
-from mcsm.recording import Recorder, decode_input, replay
 from mcsm_client.sampling import pose_from_planar, sample_pose
 
 NOISE = np.diag([0.02**2] * 3 + [0.01**2] * 3)

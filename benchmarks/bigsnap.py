@@ -6,7 +6,7 @@ server's ``MapState``, records its config, one ``/mcsm/snapshot`` (``Recorder.sn
 closures), then reads the file back as ``mcsm serve --restore`` does (``replay(...,
 from_snapshot=True)``) and checks the digest. Each phase runs in its own process so that its
 peak resident memory (``VmHWM``, reset after the map was built) is its own. ``--single``
-writes the snapshot as one record, as before chunked snapshots (mcsm.snapchunks).
+writes the snapshot as one record, as before chunked snapshots (mcsm.log.snapchunks).
 
 Run: ``nice -n 10 .venv/bin/python benchmarks/bigsnap.py [--frames 100000] [--samples 100]
 [--single]`` (figures in docs/kernel.md, "Serving a 100,000-frame map").
@@ -46,8 +46,9 @@ def _reset_peak() -> None:
 def write(path: Path, frames: int, n: int, after: int) -> dict[str, object]:
     from mcap.reader import make_reader
     from mcsm import StochasticMap, wire
+    from mcsm.log.topics import TOPIC_SNAPSHOT_PART, decode_input
+    from mcsm.log.writer import Recorder
     from mcsm.map.state import MapState
-    from mcsm.recording import TOPIC_SNAPSHOT_PART, Recorder, decode_input
     from mcsm_client.sampling import pose_from_planar, sample_pose
 
     rng = np.random.default_rng(5)
@@ -91,7 +92,7 @@ def write(path: Path, frames: int, n: int, after: int) -> dict[str, object]:
 
 
 def read(path: Path) -> dict[str, object]:
-    from mcsm.recording import replay
+    from mcsm.log.replay import replay
 
     class Probe:
         """A replay sink that only notes when the snapshot was loaded and verified."""

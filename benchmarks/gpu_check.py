@@ -213,7 +213,7 @@ def bits(rep: Report, be: Any) -> None:
 
 
 def replays(rep: Report, be: Any) -> None:
-    from mcsm.recording import replay
+    from mcsm.log.replay import replay
 
     rep.say("\n## the shipped recordings replayed on the device")
     out = {}

@@ -33,7 +33,8 @@ import lz4.frame
 import numpy as np
 import zstandard
 from mcsm import wire
-from mcsm.recording import TOPIC_OPS, RecordingReader
+from mcsm.log.reader import RecordingReader
+from mcsm.log.topics import TOPIC_OPS
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from service_throughput import (  # noqa: E402
@@ -156,8 +157,8 @@ def recorder_cpu(work: Path, n: int, layouts: list[str], repeats: int) -> None:
 
     from mcsm import StochasticMap
     from mcsm.core.quat import qexp
+    from mcsm.log.writer import Recorder
     from mcsm.map.state import MapState
-    from mcsm.recording import Recorder
 
     rng = np.random.default_rng(11)
 

@@ -13,7 +13,7 @@ A real ``mcsm serve`` subprocess (embedded Zenoh peer on a free loopback port, r
 ``Writer.flush()`` before every ack) and a ``MapClient`` in this process. For each
 configuration the same operations are also applied in-process (``MapState.apply``, no I/O), so
 the table separates the core's cost from transport + decode + recording. Replay speed is
-``mcsm.recording.replay`` on the very file the live run wrote. No assertions, no pass/fail.
+``mcsm.log.replay.replay`` on the very file the live run wrote. No assertions, no pass/fail.
 
 Configurations (N samples per AT, default 1000):
 
@@ -39,8 +39,9 @@ from typing import Any
 
 import numpy as np
 from mcsm import StochasticMap
+from mcsm.log.replay import replay
+from mcsm.log.topics import decode_input
 from mcsm.map.state import MapState
-from mcsm.recording import decode_input, replay
 from mcsm_client.client import MapClient
 from mcsm_client.process import ServerProcess
 from mcsm_client.sampling import pose_from_planar, sample_pose
@@ -277,7 +278,7 @@ def main() -> None:
               f"{m['median']:>11.2f}")
     print("\nacked ops/s: median [p10-p90] over the repeats; each op is an acknowledged RPC "
           "(update or remove), recorded and flushed before its ack. replay/live (file): ops/s "
-          "of mcsm.recording.replay over the whole recording vs the live run that wrote it "
+          "of mcsm.log.replay.replay over the whole recording vs the live run that wrote it "
           "(setup included), and their ratio. CPU ms/op: CPU time of the server process (all "
           "threads: zenoh, decode, core, recording) vs of replay, per input of the same file; "
           "the fair comparison when the machine is shared. kB/op: recording size per input "

@@ -1,7 +1,8 @@
 """The layers of CONTRIBUTING.md ("Layers"), read from the code's own imports (lazy and
-type-checking-only imports included): every import of ``mcsm.core``, ``mcsm.wire`` and
-``mcsm.map`` points down, no ``mcsm`` module imports ``mcsm_client``, and the import graph of
-``mcsm`` and ``mcsm_client`` has no cycle but the one still allowed (server <-> replication)."""
+type-checking-only imports included): every import of ``mcsm.core``, ``mcsm.wire``,
+``mcsm.map``, ``mcsm.log`` and ``mcsm.viz`` points down, no ``mcsm`` module imports
+``mcsm_client``, and the import graph of ``mcsm`` and ``mcsm_client`` has no cycle but the
+one still allowed (server <-> replication)."""
 
 from __future__ import annotations
 
@@ -11,10 +12,13 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = {"mcsm": ROOT / "service" / "mcsm", "mcsm_client": ROOT / "clients" / "mcsm_client"}
-# what each layer may import (besides itself); mcsm.errors is the shared bottom
+# what each layer may import (besides itself); mcsm.errors is the shared bottom; "mcsm" is the
+# top package alone (its __init__: __version__ and the core's names), not its subpackages
 ALLOWED = {"mcsm.core": ("mcsm.errors",),
            "mcsm.wire": ("mcsm.errors", "mcsm.core"),
-           "mcsm.map": ("mcsm.errors", "mcsm.core", "mcsm.wire")}
+           "mcsm.map": ("mcsm.errors", "mcsm.core", "mcsm.wire"),
+           "mcsm.log": ("mcsm.errors", "mcsm.core", "mcsm", "mcsm.wire", "mcsm.map"),
+           "mcsm.viz": ("mcsm.errors", "mcsm.core", "mcsm", "mcsm.wire", "mcsm.map", "mcsm.log")}
 ALLOWED_CYCLES = [{"mcsm.server", "mcsm.replication"}]  # to be broken (issue 26)
 
 
@@ -97,21 +101,26 @@ def _cycles(edges: dict[str, set[str]]) -> list[set[str]]:
     return out
 
 
+def _allows(allowed: str, dep: str) -> bool:
+    """``dep`` is the module ``allowed`` or inside it (the top package ``mcsm`` only itself)."""
+    return dep == allowed or (allowed != "mcsm" and dep.startswith(allowed + "."))
+
+
 def _layer(m: str) -> str | None:
     return next((lay for lay in ALLOWED if m == lay or m.startswith(lay + ".")), None)
 
 
 def test_the_lower_layers_import_only_downwards() -> None:
     edges = _graph()
-    assert {"mcsm.core.smap", "mcsm.wire.codec", "mcsm.map.ops"} <= set(edges)  # it reads them
+    assert {"mcsm.core.smap", "mcsm.wire.codec", "mcsm.map.ops", "mcsm.log.replay",
+            "mcsm.viz.scene"} <= set(edges)  # it reads them
     bad = []
     for m, deps in sorted(edges.items()):
         lay = _layer(m)
         if lay is None:
             continue
         ok = (lay, *ALLOWED[lay])
-        bad += [(m, d) for d in sorted(deps)
-                if not any(d == a or d.startswith(a + ".") for a in ok)]
+        bad += [(m, d) for d in sorted(deps) if not any(_allows(a, d) for a in ok)]
     assert bad == []
 
 
@@ -124,6 +133,18 @@ def test_no_mcsm_module_imports_the_client_package() -> None:
 def test_no_import_cycle_but_the_one_allowed() -> None:
     cycles = _cycles(_graph())
     assert [c for c in cycles if c not in ALLOWED_CYCLES] == []
+
+
+def test_the_layer_rule_refuses_an_upward_import() -> None:
+    """The rule above would fail on the imports it forbids: the recording importing the server
+    or the viz, the viz importing the server or the CLI, a layer reaching into ``mcsm.*`` through
+    the top package's name."""
+    assert _allows("mcsm", "mcsm") and not _allows("mcsm", "mcsm.server")
+    for lay, dep in [("mcsm.log", "mcsm.server"), ("mcsm.log", "mcsm.viz.scene"),
+                     ("mcsm.log", "mcsm.replication"), ("mcsm.viz", "mcsm.server"),
+                     ("mcsm.viz", "mcsm.cli"), ("mcsm.map", "mcsm.log.writer")]:
+        assert not any(_allows(a, dep) for a in (lay, *ALLOWED[lay])), (lay, dep)
+    assert any(_allows(a, "mcsm.log.reader") for a in ALLOWED["mcsm.viz"])
 
 
 def test_the_cycle_finder_finds_a_cycle() -> None:

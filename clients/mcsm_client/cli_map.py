@@ -156,7 +156,9 @@ def cmd_relinearize(args: argparse.Namespace) -> int:
 
 def cmd_audit(args: argparse.Namespace) -> int:
     """``audit``: GNC over the recorded inputs; print (and with --apply send) its decisions."""
-    from mcsm.recording import TOPIC_OPS, RecordingReader, decode_input, replay
+    from mcsm.log.reader import RecordingReader
+    from mcsm.log.replay import replay
+    from mcsm.log.topics import TOPIC_OPS, decode_input
 
     from mcsm_client.audit import AuditInput, Auditor
 

@@ -512,7 +512,7 @@ def serve(args: argparse.Namespace) -> int:
     import zenoh
 
     from mcsm.connect import listen_endpoints, security_warning, server_config
-    from mcsm.recording import progress_bar
+    from mcsm.log.progress import progress_bar
     from mcsm.server import Server, ServerOptions
 
     logging.basicConfig(level=getattr(logging, str(args.log_level).upper(), logging.INFO),
@@ -528,7 +528,7 @@ def serve(args: argparse.Namespace) -> int:
             k += 1
     restore: list[Path] | None = None
     if args.restore:
-        from mcsm.recset import resolve
+        from mcsm.log.recset import resolve
 
         try:
             restore = resolve(args.restore)
@@ -640,8 +640,8 @@ def _version_text() -> str:
 def _input_files(cmd: str, args: list[Path]) -> tuple[list[Path], str | None]:
     """The files ``args`` name (one recording, or a split recording's files in set order,
     :mod:`mcsm.recset`) and why they cannot be read (None if they can)."""
-    from mcsm.recording import RecordingError
-    from mcsm.recset import expand, order
+    from mcsm.log.recset import expand, order
+    from mcsm.log.topics import RecordingError
 
     try:
         files = expand(args)
@@ -672,7 +672,7 @@ def _input_file(cmd: str, path: Path) -> str | None:
             pass
     except OSError as exc:
         return f"mcsm {cmd}: {path}: cannot open: {exc.strerror or exc}"
-    from mcsm.filetype import not_a_recording
+    from mcsm.log.filetype import not_a_recording
 
     why = not_a_recording(path)  # e.g. a Foxglove scene: not damaged, not ours
     return f"mcsm {cmd}: {path}: {why}" if why else None
@@ -694,7 +694,7 @@ def _output_file(cmd: str, path: Path) -> str | None:
 
 
 def _progress(args: argparse.Namespace, label: str) -> Any:
-    from mcsm.recording import progress_bar
+    from mcsm.log.progress import progress_bar
 
     return None if getattr(args, "no_progress", False) else progress_bar(label=label)
 
@@ -716,7 +716,8 @@ MACHINE_BOUND = ("method=paper in the quaternion space runs on numpy/BLAS: it re
 
 def replay_cmd(args: argparse.Namespace) -> int:
     from mcsm.core import ARITHMETIC_VERSION
-    from mcsm.recording import RecordingError, replay
+    from mcsm.log.replay import replay
+    from mcsm.log.topics import RecordingError
 
     files, why = _input_files("replay", args.file)
     if why:
@@ -790,7 +791,7 @@ def replay_cmd(args: argparse.Namespace) -> int:
 def inspect_cmd(args: argparse.Namespace) -> int:
     """Inspect each file (of a split recording: in set order); the exit code is the worst:
     5 (damaged) over 4 (cut) over 0."""
-    from mcsm.recset import set_file
+    from mcsm.log.recset import set_file
 
     files, why = _input_files("inspect", args.file)
     if why:
@@ -811,13 +812,13 @@ def inspect_cmd(args: argparse.Namespace) -> int:
 
 def _inspect_one(path: Path, as_json: bool) -> int:
     from mcsm.core import ARITHMETIC_VERSION
-    from mcsm.recording import (
+    from mcsm.log.reader import RecordingReader
+    from mcsm.log.topics import (
         TOPIC_CHECKPOINT,
         TOPIC_CONFIG,
         TOPIC_OPS,
         TOPIC_SNAPSHOT,
         RecordingError,
-        RecordingReader,
     )
 
     reader = RecordingReader(path, edges=False)  # snapshots checked, not kept
@@ -960,7 +961,8 @@ def recover_cmd(args: argparse.Namespace) -> int:
 
 
 def _recover_one(args: argparse.Namespace, src: Path, dst: Path) -> int:
-    from mcsm.recording import TOPIC_CHECKPOINT, TOPIC_CONFIG, RecordingError, recover
+    from mcsm.log.recover import recover
+    from mcsm.log.topics import TOPIC_CHECKPOINT, TOPIC_CONFIG, RecordingError
 
     bar = _progress(args, f"recover {src.name}")
     try:
@@ -1013,7 +1015,7 @@ def _input_json(op: str, req: Any, with_samples: bool) -> dict[str, Any]:
 
 
 def cat_cmd(args: argparse.Namespace) -> int:
-    from mcsm.recording import RecordingReader
+    from mcsm.log.reader import RecordingReader
 
     files, why = _input_files("cat", args.file)
     if why:
@@ -1030,8 +1032,8 @@ def cat_cmd(args: argparse.Namespace) -> int:
 
 def _cat_file(args: argparse.Namespace, path: Path, reader: Any,
               n_samples: dict[str, int]) -> int:
-    from mcsm.recording import TOPIC_CONFIG, TOPIC_OPS, RecordingError
-    from mcsm.recording import decode_input as decode
+    from mcsm.log.topics import TOPIC_CONFIG, TOPIC_OPS, RecordingError
+    from mcsm.log.topics import decode_input as decode
 
     try:
         for item in reader:

@@ -52,9 +52,10 @@ import zenoh
 from mcsm import wire
 from mcsm.core.smap import StochasticMap
 from mcsm.errors import BadMessage, McsmError, NotReplicated
+from mcsm.log.topics import INPUT_TOPICS, decode_input
+from mcsm.map.carry import decode_snapshot, encode_snapshot
 from mcsm.map.deferral import DeferOptions, DeferState
 from mcsm.map.state import MapState
-from mcsm.recording import INPUT_TOPICS, decode_input, decode_snapshot, encode_snapshot
 
 if TYPE_CHECKING:
     from mcsm.server import Server

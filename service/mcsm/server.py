@@ -50,16 +50,13 @@ from mcsm import wire
 from mcsm.core.smap import StochasticMap
 from mcsm.errors import Busy, InternalError, McsmError
 from mcsm.lanes import Full, Lanes
+from mcsm.log.replay import replay
+from mcsm.log.topics import RecordingError, decode_input
+from mcsm.log.writer import Recorder
 from mcsm.map import ops
 from mcsm.map.deferral import DeferOptions
 from mcsm.map.history import DEFAULT_SNAPSHOT_EVERY, DEFAULT_SNAPSHOTS_KEPT, DEFAULT_WINDOW_BYTES
 from mcsm.map.state import DEFAULT_ID_TTL_S, DEFAULT_LRU, MapState
-from mcsm.recording import (
-    Recorder,
-    RecordingError,
-    decode_input,
-    replay,
-)
 from mcsm.replication import (
     DEFAULT_LOG_ENTRIES,
     DEFAULT_SYNC_TIMEOUT_S,

@@ -38,7 +38,7 @@ from mcsm.errors import (
     Timeout,
     UnknownFrame,
 )
-from mcsm.recording import replay
+from mcsm.log.replay import replay
 from mcsm.server import Server, ServerOptions
 from mcsm_client.client import MIN_ATTEMPT_S, MapClient
 from mcsm_client.process import loopback_endpoint as free_endpoint

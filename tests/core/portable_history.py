@@ -111,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
                               for name, opts in OPTION_SETS.items()}
     out["gate-defer"] = deferral_history(args.threads)
     if args.replay:
-        from mcsm.recording import replay
+        from mcsm.log.replay import replay
 
         for path in args.replay:
             rep = replay(path)

@@ -110,7 +110,7 @@ def test_the_deferral_history_on_the_emulated_device(backend: emulation.Emulated
 @pytest.mark.parametrize("path", RECORDINGS, ids=[p.name for p in RECORDINGS])
 def test_the_shipped_recordings_replay_identical_on_the_emulated_device(
         backend: emulation.EmulatedBackend, path: Path) -> None:
-    from mcsm.recording import replay
+    from mcsm.log.replay import replay
 
     rep = replay(path, device=backend)
     assert rep.identical, rep.divergence

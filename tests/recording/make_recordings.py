@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository r
 
 from mcsm import StochasticMap  # noqa: E402
 from mcsm.errors import McsmError  # noqa: E402
-from mcsm.recording import RecordingReader  # noqa: E402
+from mcsm.log.reader import RecordingReader  # noqa: E402
 from mcsm_client.client import MapClient  # noqa: E402
 
 from tests.service.daemon_util import noisy_at, start_daemon  # noqa: E402

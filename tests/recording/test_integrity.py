@@ -28,18 +28,12 @@ from mcsm.cli import (
 from mcsm.cli import main as mcsm_main
 from mcsm.core import ARITHMETIC_VERSION
 from mcsm.errors import McsmError
+from mcsm.log.progress import Progress
+from mcsm.log.reader import RecordingReader
+from mcsm.log.replay import replay
+from mcsm.log.topics import INPUT_TOPICS, TOPIC_CHECKPOINT, TOPIC_CONFIG, decode_input, schema_bytes
+from mcsm.log.writer import Recorder
 from mcsm.map.state import MapState
-from mcsm.recording import (
-    INPUT_TOPICS,
-    TOPIC_CHECKPOINT,
-    TOPIC_CONFIG,
-    Progress,
-    Recorder,
-    RecordingReader,
-    decode_input,
-    replay,
-    schema_bytes,
-)
 from mcsm_client.client import MapClient
 
 from tests.recording.test_recording import record_session
@@ -317,7 +311,7 @@ def test_replay_of_another_arithmetic_version_says_so(
         capsys: pytest.CaptureFixture[str]) -> None:
     path = tmp_path / "old.mcap"
     if how == "says-1":
-        monkeypatch.setattr("mcsm.recording.ARITHMETIC_VERSION", 1)
+        monkeypatch.setattr("mcsm.log.writer.ARITHMETIC_VERSION", 1)
         record_session(path, N, 9, seed=8804, checkpoint_every=3)
         monkeypatch.undo()
         assert RecordingReader(path).arithmetic_version == 1
@@ -353,7 +347,7 @@ def test_other_arithmetic_with_differing_digests_is_not_called_diverged(
         capsys: pytest.CaptureFixture[str]) -> None:
     """A version-1 recording whose digests differ from this core's (as real ones will)."""
     path = tmp_path / "old.mcap"
-    monkeypatch.setattr("mcsm.recording.ARITHMETIC_VERSION", 1)
+    monkeypatch.setattr("mcsm.log.writer.ARITHMETIC_VERSION", 1)
     rec = Recorder(path)
     st = MapState("default", StochasticMap(N))
     rec.config(st, 1)
@@ -370,7 +364,8 @@ def test_other_arithmetic_with_differing_digests_is_not_called_diverged(
     # the same file claiming this core's version is a divergence
     same = tmp_path / "same.mcap"
     _write_legacy(same, path)  # drops the version field ...
-    monkeypatch.setattr("mcsm.recording.LEGACY_ARITHMETIC_VERSION", ARITHMETIC_VERSION)
+    for where in ("mcsm.log.reader", "mcsm.log.replay"):  # the modules that read the default
+        monkeypatch.setattr(f"{where}.LEGACY_ARITHMETIC_VERSION", ARITHMETIC_VERSION)
     assert mcsm_main(["replay", str(same), "--no-progress"]) == EXIT_DIVERGED  # ... now "2"
     assert "DIVERGED: map 'default': digest differs at seq 1" in capsys.readouterr().out
 

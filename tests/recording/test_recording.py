@@ -11,20 +11,20 @@ from mcap.reader import NonSeekingReader, make_reader
 from mcsm import StochasticMap, wire
 from mcsm.cli import main as mcsm_main
 from mcsm.core.quat import qexp
-from mcsm.map.state import MapState
-from mcsm.recording import (
+from mcsm.log.reader import RecordingReader
+from mcsm.log.replay import replay
+from mcsm.log.topics import (
     INPUT_TOPICS,
     TOPIC_CHECKPOINT,
     TOPIC_CONFIG,
     TOPIC_SNAPSHOT,
     TOPIC_SNAPSHOT_PART,
-    Recorder,
     RecordingError,
-    RecordingReader,
     decode_input,
-    replay,
     schema_bytes,
 )
+from mcsm.log.writer import Recorder
+from mcsm.map.state import MapState
 from mcsm_client.process import loopback_endpoint
 
 RECORDINGS = Path(__file__).resolve().parents[2] / "recordings"

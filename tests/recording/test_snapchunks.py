@@ -1,4 +1,4 @@
-"""Chunked snapshots (mcsm.snapchunks): a snapshot larger than the part size is a header and
+"""Chunked snapshots (mcsm.log.snapchunks): a snapshot larger than the part size is a header and
 bounded parts, read back by replay, --restore, recover, inspect and cat; a snapshot that cannot
 be read back never makes a reader skip the records after it.
 
@@ -15,20 +15,15 @@ from pathlib import Path
 import pytest
 from jsonschema import Draft202012Validator
 from mcap.records import Message
-from mcsm import recording, snapchunks
 from mcsm.cli import EXIT_OK, EXIT_USAGE
 from mcsm.cli import main as mcsm_main
+from mcsm.log import reader, snapchunks
+from mcsm.log.reader import RecordingReader
+from mcsm.log.recover import recover
+from mcsm.log.replay import replay
+from mcsm.log.topics import TOPIC_SNAPSHOT, TOPIC_SNAPSHOT_PART, RecordingError, schema_bytes
+from mcsm.log.writer import Recorder
 from mcsm.map.carry import decode_snapshot
-from mcsm.recording import (
-    TOPIC_SNAPSHOT,
-    TOPIC_SNAPSHOT_PART,
-    Recorder,
-    RecordingError,
-    RecordingReader,
-    recover,
-    replay,
-    schema_bytes,
-)
 
 from tests.recording import test_split
 from tests.recording.test_split import Driver, _state
@@ -207,7 +202,7 @@ def test_a_record_too_large_to_read_back_fails_loudly(
     path = tmp_path / "run.mcap"
     _, digests = _record(path, n_updates=60)
     big = max(len(r.data) for r in RecordingReader(path).raw() if isinstance(r, Message))
-    monkeypatch.setattr(recording, "MAX_RECORD_BYTES", big - 1)
+    monkeypatch.setattr(reader, "MAX_RECORD_BYTES", big - 1)
     for restore in (False, True):
         with pytest.raises(RecordingError) as err:
             replay(path, from_snapshot=restore)

@@ -23,18 +23,15 @@ from mcsm.cli import EXIT_USAGE
 from mcsm.cli import main as mcsm_main
 from mcsm.errors import InvalidOperation
 from mcsm.lanes import Full, Lanes
+from mcsm.log.chunkwriter import ChunkPerInputWriter
+from mcsm.log.reader import RecordingReader
+from mcsm.log.recset import resolve
+from mcsm.log.replay import replay
+from mcsm.log.topics import RecordingError, decode_input
+from mcsm.log.writer import Recorder
 from mcsm.map import ops
 from mcsm.map.history import nbytes
 from mcsm.map.state import MapState
-from mcsm.recording import (
-    ChunkPerInputWriter,
-    Recorder,
-    RecordingError,
-    RecordingReader,
-    decode_input,
-    replay,
-)
-from mcsm.recset import resolve
 
 from tests.recording.test_recording import at
 
@@ -247,7 +244,7 @@ def test_chunk_indexes_spill_to_disk_and_still_index_every_chunk(
 
 def test_a_full_disk_leaves_a_cut_file_with_every_complete_input(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    import mcsm.recording as recording
+    from mcsm.log import chunkwriter
 
     path = tmp_path / "r.mcap"
     rec = Recorder(path)
@@ -255,7 +252,7 @@ def test_a_full_disk_leaves_a_cut_file_with_every_complete_input(
     rec.config(dr.st, 5)
     for k in range(10):
         dr.update(k)
-    real = recording._write_all  # noqa: SLF001
+    real = chunkwriter._write_all  # noqa: SLF001
 
     def full(fd: int, parts: list[bytes], total: int) -> None:  # half a record, then ENOSPC
         import os
@@ -263,12 +260,12 @@ def test_a_full_disk_leaves_a_cut_file_with_every_complete_input(
         os.write(fd, b"".join(parts)[: total // 2])
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr(recording, "_write_all", full)
+    monkeypatch.setattr(chunkwriter, "_write_all", full)
     with pytest.raises(OSError, match="No space"):
         dr.update(10)
     with pytest.raises(OSError):  # closing tries nothing more: the file stays cut
         rec.close()
-    monkeypatch.setattr(recording, "_write_all", real)
+    monkeypatch.setattr(chunkwriter, "_write_all", real)
     r = RecordingReader(path)
     seqs = [item.data["seq"] for item in r if item.topic == "/mcsm/in/update"]
     assert seqs == list(range(1, 11)) and r.cut and r.damage is None

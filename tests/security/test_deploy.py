@@ -298,7 +298,7 @@ def test_denied_call_names_the_cause(dep: Deployment) -> None:
 def test_concurrent_robots_with_authentication(dep: Deployment) -> None:
     """The load test's shape with authentication on: robots stream into their own namespaces
     at once, every op gets a distinct seq, the recording replays to the live digest."""
-    from mcsm.recording import replay
+    from mcsm.log.replay import replay
 
     per_robot = 8
     acks: list[wire.Ack] = []

@@ -24,7 +24,9 @@ import pytest
 import zenoh
 from mcsm import wire
 from mcsm.connect import client_config
-from mcsm.recording import TOPIC_OPS, RecordingReader, replay
+from mcsm.log.reader import RecordingReader
+from mcsm.log.replay import replay
+from mcsm.log.topics import TOPIC_OPS
 from mcsm_client.client import MapClient
 from mcsm_client.process import McsmProcess
 

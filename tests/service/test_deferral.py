@@ -21,9 +21,11 @@ import numpy as np
 import pytest
 from mcsm import StochasticMap, wire
 from mcsm.errors import InvalidOperation
+from mcsm.log.reader import RecordingReader
+from mcsm.log.replay import replay
+from mcsm.log.writer import Recorder
 from mcsm.map.deferral import DeferOptions
 from mcsm.map.state import MapState
-from mcsm.recording import Recorder, RecordingReader, replay
 from mcsm_client.client import MapClient
 from mcsm_client.outliers import DeferringMap, Ledger, Record
 
@@ -189,7 +191,7 @@ def test_replay_and_restore_from_a_snapshot_reproduce_verdicts_and_digests(
     assert snap["deferral"]["held"]["id"] == f"r{loops[0]}"
     # the records and a pending ack match their schemas
     from jsonschema import Draft202012Validator
-    from mcsm.recording import schema_bytes
+    from mcsm.log.topics import schema_bytes
 
     for record, name in ((config, "record_config.json"), (snap, "record_snapshot.json")):
         schema = json.loads(schema_bytes(name))

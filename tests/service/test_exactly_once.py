@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 from mcsm import wire
-from mcsm.recording import replay
-from mcsm.recset import resolve
+from mcsm.log.recset import resolve
+from mcsm.log.replay import replay
 from mcsm_client.client import MapClient
 
 from tests.service.daemon_util import Daemon, noisy_at, start_daemon

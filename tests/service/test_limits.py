@@ -26,7 +26,8 @@ import numpy as np
 import pytest
 from mcsm import wire
 from mcsm.errors import McsmError
-from mcsm.recording import RecordingReader, replay
+from mcsm.log.reader import RecordingReader
+from mcsm.log.replay import replay
 from mcsm_client.client import MapClient
 
 from tests.service.daemon_util import STARTUP_DEADLINE_S, Daemon, noisy_at, start_daemon

@@ -176,8 +176,8 @@ def test_client_streams_across_sigkill_and_restore(tmp_path: Path,
 def test_id_memory_is_bounded_by_time_and_count() -> None:
     """Ids are forgotten after id_ttl_s (receive times, so a replayed memory ages the same
     way) and beyond lru_size; a remembered id with another request raises RequestIdReused."""
+    from mcsm.log.topics import decode_input
     from mcsm.map.state import DEFAULT_ID_TTL_S, DEFAULT_LRU, MapState
-    from mcsm.recording import decode_input
 
     assert DEFAULT_ID_TTL_S >= 300 and DEFAULT_LRU >= 100_000
     rng = np.random.default_rng(9105)

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from mcsm import StochasticMap
-from mcsm.recording import replay
+from mcsm.log.replay import replay
 from mcsm_client.cli import main as client_main
 from mcsm_client.client import MapClient
 

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from mcsm import StochasticMap
 from mcsm.errors import InvalidOperation
-from mcsm.recording import replay
+from mcsm.log.replay import replay
 from mcsm_client.client import MapClient
 
 from tests.service.daemon_util import Daemon, noisy_at, start_daemon

@@ -20,7 +20,7 @@ import zenoh
 from mcsm import StochasticMap, wire
 from mcsm.cli import main as mcsm_main
 from mcsm.errors import FrameExists, McsmError, Timeout, UnknownFrame
-from mcsm.recording import replay
+from mcsm.log.replay import replay
 from mcsm_client.client import MapClient
 
 from tests.service.daemon_util import Daemon, free_port, noisy_at, start_daemon

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 from mcsm import StochasticMap
-from mcsm.recording import replay
+from mcsm.log.replay import replay
 from mcsm_client.client import MapClient
 
 from tests.service.daemon_util import Daemon, noisy_at, start_daemon

@@ -16,7 +16,9 @@ from pathlib import Path
 import msgpack
 import numpy as np
 import pytest
-from mcsm.recording import TOPIC_CHECKPOINT, TOPIC_OPS, RecordingReader, replay
+from mcsm.log.reader import RecordingReader
+from mcsm.log.replay import replay
+from mcsm.log.topics import TOPIC_CHECKPOINT, TOPIC_OPS
 from mcsm_client.cli import main as client_main
 from mcsm_client.client import MapClient
 

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 from mcsm import StochasticMap, wire
-from mcsm.recording import replay
+from mcsm.log.replay import replay
 from mcsm_client.client import MapClient
 
 from tests.service.daemon_util import Daemon, noisy_at, start_daemon

@@ -14,8 +14,9 @@ import gtsam
 import numpy as np
 import pytest
 from mcsm import StochasticMap, cli, wire
+from mcsm.log.topics import decode_input
+from mcsm.log.writer import Recorder
 from mcsm.map.state import MapState
-from mcsm.recording import Recorder, decode_input
 from scipy.spatial.transform import Rotation
 
 from tests.helpers import gaussian_at

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from mcap.reader import SeekingReader, make_reader
 from mcsm import cli
-from mcsm.recording import RecordingReader
+from mcsm.log.reader import RecordingReader
 from mcsm.viz.foxglove_scene import export_foxglove
 
 from tests.viz.conftest import N, Recording, build_map
@@ -166,8 +166,9 @@ def test_export_of_a_recording_with_state_snapshots(tmp_path: Path) -> None:
     """A recording holding state snapshots (mcsm serve --disk-snapshot-every) exports: the
     snapshots are verified by replay and draw nothing of their own."""
     from mcsm import StochasticMap, wire
+    from mcsm.log.topics import decode_input
+    from mcsm.log.writer import Recorder
     from mcsm.map.state import MapState
-    from mcsm.recording import Recorder, decode_input
 
     from tests.helpers import random_at
 

@@ -60,7 +60,7 @@ def decode_snapshot(obj: Any, n_samples: int) -> dict[str, Any]:
         if not isinstance(c, dict):
             raise McsmError("a snapshot component is not a map")
         raw = c.get("edges")
-        if isinstance(raw, np.ndarray):  # a chunked snapshot's, filled by mcsm.snapchunks
+        if isinstance(raw, np.ndarray):  # a chunked snapshot's, filled by mcsm.log.snapchunks
             if raw.ndim != 3 or raw.dtype != np.float64:
                 raise McsmError(f"snapshot edges of shape {raw.shape}, dtype {raw.dtype}")
             if not np.isfinite(raw).all():

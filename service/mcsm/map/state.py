@@ -2,7 +2,7 @@
 remembers (idempotency), its verdict counts, its retract window (:mod:`mcsm.map.history`) and,
 with ``--gate-defer``, its deferral policy (:mod:`mcsm.map.deferral`).
 
-The live server and replay (:func:`mcsm.recording.replay`) both apply inputs through
+The live server and replay (:func:`mcsm.log.replay.replay`) both apply inputs through
 :meth:`MapState.apply`, so a replayed map is built by the same code path as the live one.
 """
 

@@ -114,7 +114,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _check_input(path: Path) -> None:
-    from mcsm.filetype import not_a_recording
+    from mcsm.log.filetype import not_a_recording
 
     if not path.is_file():
         raise McsmError(f"no such recording: {path}")
@@ -137,7 +137,7 @@ def _check_output(path: Path, overwrite: bool = False) -> None:
 
 
 def _plot(args: argparse.Namespace) -> int:
-    from mcsm.recset import resolve
+    from mcsm.log.recset import resolve
     from mcsm.viz import require
     from mcsm.viz.scene import load_map, map_view, read_truth
 
@@ -194,7 +194,7 @@ def _name(args: argparse.Namespace) -> str:
 
 
 def _g2o(args: argparse.Namespace) -> int:
-    from mcsm.exchange import collect, frames_file, write_g2o
+    from mcsm.viz.exchange import collect, frames_file, write_g2o
 
     _check_input(args.file)
     _check_output(args.output, overwrite=args.force)
@@ -211,7 +211,7 @@ def _g2o(args: argparse.Namespace) -> int:
 
 
 def _tum(args: argparse.Namespace) -> int:
-    from mcsm.exchange import collect, tum_paths, write_tum
+    from mcsm.viz.exchange import collect, tum_paths, write_tum
 
     _check_input(args.file)
     _check_output(Path(f"{args.output}-x.tum"), overwrite=True)  # the folder, before replay

@@ -389,7 +389,7 @@ def export_foxglove(path: str | os.PathLike[str], out: str | os.PathLike[str], *
     McsmError
         Unreadable recording, unknown map; ``MissingExtra`` without foxglove-sdk.
     """
-    from mcsm.recording import replay
+    from mcsm.log.replay import replay
     from mcsm.viz.scene import choose_map, recording_maps
 
     if every is not None and every < 1:

@@ -62,7 +62,7 @@ def _load_rosbags() -> tuple[Any, Any, Any]:
 
 
 def _last_time_ns(path: Path) -> int:
-    from mcsm.recording import RecordingReader
+    from mcsm.log.reader import RecordingReader
 
     t = 0
     for item in RecordingReader(path, edges=False):

@@ -186,7 +186,7 @@ class LoadedMap:
 
 
 class ReplaySink:
-    """Passed to ``mcsm.recording.replay`` as its ``sink``: replay calls ``config`` with each
+    """Passed to ``mcsm.log.replay.replay`` as its ``sink``: replay calls ``config`` with each
     map's live state, ``input`` after applying each input, ``snapshot`` when it starts from
     (or verifies) a state snapshot. This one follows one map and records the update that
     created each of its frames (:class:`mcsm.viz.layout.FrameHistory`); subclasses draw."""
@@ -248,7 +248,8 @@ def recording_bases(path: str | os.PathLike[str] | Sequence[str | os.PathLike[st
 
 def _scan(path: str | os.PathLike[str] | Sequence[str | os.PathLike[str]]
           ) -> tuple[dict[str, list[int]], dict[str, int]]:
-    from mcsm.recording import TOPIC_CONFIG, TOPIC_OPS, RecordingReader
+    from mcsm.log.reader import RecordingReader
+    from mcsm.log.topics import TOPIC_CONFIG, TOPIC_OPS
 
     paths = [path] if isinstance(path, (str, os.PathLike)) else list(path)
     counts: dict[str, list[int]] = {}
@@ -287,7 +288,7 @@ def choose_map(names: list[str], wanted: str | None, path: str) -> str:
 
 def load_map(path: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
              map_name: str | None = None, at_seq: int | None = None) -> LoadedMap:
-    """Replay a recording (``mcsm.recording.replay``) up to seq ``at_seq`` of one map.
+    """Replay a recording (``mcsm.log.replay.replay``) up to seq ``at_seq`` of one map.
 
     Parameters
     ----------
@@ -301,7 +302,7 @@ def load_map(path: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
         Unreadable file (``RecordingError``), unknown map, or a sequence number the file does
         not reach.
     """
-    from mcsm.recording import replay
+    from mcsm.log.replay import replay
 
     counts, bases = _scan(path)
     label = str(path) if isinstance(path, (str, os.PathLike)) else ", ".join(map(str, path))

@@ -1,7 +1,7 @@
 """A recorded map in the formats other tools read: g2o pose graphs and TUM trajectories.
 
 ``mcsm export g2o FILE.mcap`` and ``mcsm export tum FILE.mcap`` replay the recording once
-(``mcsm.recording.replay``, with its checks) and collect, for one map:
+(``mcsm.log.replay.replay``, with its checks) and collect, for one map:
 
 * the map at the end: every frame's mean relative to its component's root (the vertices, and
   the trajectories' poses);
@@ -140,7 +140,7 @@ class _CollectSink(ReplaySink):
                     self.constraints[rid].status = v.status
 
     def _update(self, seq: int, recv_ns: int, request: bytes, before: set[str]) -> None:
-        from mcsm.recording import decode_input
+        from mcsm.log.topics import decode_input
 
         st = self.state
         try:
@@ -177,7 +177,7 @@ def collect(path: str | os.PathLike[str], map_name: str | None = None) -> Collec
     McsmError
         Unreadable recording (``RecordingError``) or unknown map.
     """
-    from mcsm.recording import replay
+    from mcsm.log.replay import replay
 
     counts = recording_maps(path)
     name = choose_map(list(counts), map_name, str(path))

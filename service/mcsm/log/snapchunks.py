@@ -18,13 +18,13 @@ structure) followed by each component's edges as raw little-endian float64 in ``
 order; ``crc32`` is the CRC-32 of the whole stream. A snapshot that fits in one chunk is still
 written as one format-1 record, so small maps' files read in older mcsm as before.
 
-Reading (:class:`Assembler`, driven by :class:`mcsm.recording.RecordingReader`): the parts are
+Reading (:class:`Assembler`, driven by :class:`mcsm.log.reader.RecordingReader`): the parts are
 checked (same map and seq, consecutive numbers, no byte beyond ``bytes``), the edges are
 written into their final arrays part by part (peak memory: the map plus one part), and the
 stream's length and CRC are checked at the end; the reassembled record is yielded as one
 ``/mcsm/snapshot`` item shaped like a format-1 record (``state.components[i].edges`` a numpy
 array). A snapshot that is incomplete when another record follows raises
-:class:`~mcsm.recording.RecordingError` naming the file and byte offsets: the records after a
+:class:`~mcsm.log.topics.RecordingError` naming the file and byte offsets: the records after a
 snapshot that cannot be read back are never skipped silently. One that is incomplete at the
 end of the file (cut while it was written) is reported (``pending``) and ignored: nothing
 after it was lost.
@@ -35,21 +35,18 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Callable, Iterator
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import msgpack
 import numpy as np
 
 from mcsm import wire
 from mcsm.errors import McsmError
+from mcsm.log.topics import TOPIC_SNAPSHOT, TOPIC_SNAPSHOT_PART
 from mcsm.map.carry import encode_snapshot
-
-if TYPE_CHECKING:
-    from mcsm.recording import RecordingReader, RecordItem
 
 log = logging.getLogger(__name__)
 
-TOPIC_SNAPSHOT_PART = "/mcsm/snapshot_part"
 CHUNK_BYTES_ENV = "MCSM_SNAPSHOT_CHUNK_BYTES"
 DEFAULT_CHUNK_BYTES = 64 << 20
 """Largest part (and largest single-record snapshot) written: 64 MiB."""
@@ -98,8 +95,6 @@ def records(rec: dict[str, Any], limit: int | None = None) -> Iterator[tuple[str
     (``rec["state"]`` a raw :meth:`StochasticMap.snapshot`, edges as arrays): one format-1
     record when it fits in ``limit`` bytes (default :func:`chunk_bytes`), else a header and
     its parts. The parts are made one at a time (memory: one part beyond the snapshot)."""
-    from mcsm.recording import TOPIC_SNAPSHOT
-
     limit = chunk_bytes() if limit is None else max(MIN_CHUNK_BYTES, int(limit))
     state = rec["state"]
     arrays = _edges_arrays(state)
@@ -329,59 +324,3 @@ class Assembler:
             if n:
                 self._targets.append(target)
                 self._sizes.append(n)
-
-
-def items(reader: RecordingReader) -> Iterator[RecordItem]:
-    """:class:`~mcsm.recording.RecordingReader`'s messages, decoded, each chunked snapshot
-    yielded once as one ``/mcsm/snapshot`` item (its header's log time); afterwards
-    ``reader.pending_snapshot`` says what an unfinished one at the end lacks.
-
-    Raises
-    ------
-    RecordingError
-        If a snapshot cannot be read back with records after it, or a record was longer than
-        the reader reads: the records after it are never skipped silently.
-    """
-    from mcap.records import Message
-
-    from mcsm import recording as rc
-
-    asm = Assembler(str(reader.path), reader.size, reader.edges)
-    head_time = 0
-    for rec in reader.raw():
-        if not isinstance(rec, Message):
-            continue
-        topic = reader.channels[rec.channel_id].topic
-        at = reader.record_offset
-        try:
-            if topic in (rc.TOPIC_SNAPSHOT, TOPIC_SNAPSHOT_PART):
-                data = unpack_body(rec.data)
-            else:
-                data = wire.unpack(rec.data, max_bytes=rc.MAX_RECORD_BYTES)
-        except McsmError as exc:
-            reader.tail_error = reader.damage = f"undecodable record on {topic}: {exc}"
-            return
-        try:
-            if topic == TOPIC_SNAPSHOT_PART:
-                whole = asm.part(data, at)
-                if whole is not None:
-                    yield rc.RecordItem(rc.TOPIC_SNAPSHOT, whole, head_time)
-                continue
-            if asm.pending is not None:
-                raise SnapshotError(f"{asm.pending}; the record at byte {at} ({topic}) "
-                                    "follows: the snapshot cannot be read back")
-            if topic == rc.TOPIC_SNAPSHOT and is_header(data):
-                asm.start(data, at)
-                head_time = int(rec.log_time)
-                continue
-        except SnapshotError as exc:
-            raise rc.RecordingError(str(reader.path), f"{exc}; the records after it are not "
-                                    "read (mcsm recover cannot mend a snapshot)") from None
-        yield rc.RecordItem(topic, data, int(rec.log_time))
-    reader.pending_snapshot = asm.pending
-    if reader.oversize is not None:
-        raise rc.RecordingError(str(reader.path), reader.oversize)
-    if reader.pending_snapshot is not None:
-        note = f"{reader.pending_snapshot} (the file ends inside it)"
-        reader.tail_error = note if reader.tail_error is None else f"{reader.tail_error}; {note}"
-        log.warning("%s: %s", reader.path, note)

@@ -30,7 +30,8 @@ from pathlib import Path
 
 from mcap.records import Metadata
 
-from mcsm.recording import RecordingError, RecordingReader
+from mcsm.log.reader import RecordingReader
+from mcsm.log.topics import RecordingError
 
 
 @dataclass(frozen=True)

@@ -12,11 +12,16 @@ from __future__ import annotations
 import os
 from itertools import islice
 
-from mcsm.map.ops import INPUT_TOPICS
+from mcsm.log.topics import (
+    INPUT_TOPICS,
+    TOPIC_CHECKPOINT,
+    TOPIC_CONFIG,
+    TOPIC_SNAPSHOT,
+    TOPIC_SNAPSHOT_PART,
+)
 
-#: topics of an mcsm recording (mcsm.recording's)
-RECORDING_TOPICS = frozenset(["/mcsm/config", "/mcsm/checkpoint", "/mcsm/snapshot",
-                              "/mcsm/snapshot_part",
+#: topics of an mcsm recording (:mod:`mcsm.log.topics`)
+RECORDING_TOPICS = frozenset([TOPIC_CONFIG, TOPIC_CHECKPOINT, TOPIC_SNAPSHOT, TOPIC_SNAPSHOT_PART,
                               *INPUT_TOPICS.values()])
 #: records read at most before the verdict (a recording's first message comes much sooner)
 MAX_RECORDS = 10_000
