@@ -156,21 +156,8 @@ class Keys:
         ``namespace`` if given (``.../update/robot1``)."""
         return self._k(f"{leaf}/{check_namespace(namespace)}" if namespace else leaf)
 
-    # Replication keys (hot standbys, :mod:`mcsm.replication`). ``@`` makes a chunk verbatim:
-    # the map's ``**`` queryable never matches these keys, so clients' requests and the
-    # servers' replication traffic never meet (and an access-control list grants them apart).
-    def standby(self, server_id: str) -> str:
-        """A standby's queryable (the primary pushes inputs to it) and liveliness token."""
-        return self._k(f"@standby/{server_id}")
-
-    @property
-    def standby_any(self) -> str:
-        return self._k("@standby/*")
-
-    @property
-    def log(self) -> str:
-        """The primary's catch-up queryable: a standby asks for the inputs after its seq."""
-        return self._k("@log")
+    # No replication keys: standbys follow the map's log in NATS JetStream
+    # (:mod:`mcsm.replication`), never through Zenoh.
 
     def route(self, key: str) -> tuple[str, str]:
         """``(leaf, namespace)`` of a concrete request key of this map (:func:`mcsm.ops.route`).
@@ -583,11 +570,13 @@ class MapInfo:
     """``primary`` (a standby has no map queryable: only the primary answers info)."""
     standbys: dict[str, int] = field(default_factory=dict, metadata=wire_field(
         check_counts, pack=dict, required=False))
-    """Each live standby's server id and the last seq it confirmed (its lag: ``seq`` minus
-    that); ``sync_standbys`` of them must confirm an update before it is acknowledged."""
-    sync_standbys: int = field(default=0, metadata=wire_field(check_count, required=False))
+    """Each standby's server id and the last seq the log delivered to it (its lag: ``seq``
+    minus that), from the log's consumers (``mcsm serve --nats``)."""
+    replicas: int = field(default=0, metadata=wire_field(check_count, required=False))
+    """Copies of the map's log (JetStream R; 0: not replicated)."""
     epoch: int = field(default=0, metadata=wire_field(check_count, required=False))
-    """Takeovers behind this primary (0: started with ``--map``; docs/fleet.md)."""
+    """The lease revision this primary took the map with: grows with every takeover (0: not
+    replicated; docs/fleet.md)."""
 
     @property
     def n_frames(self) -> int:
