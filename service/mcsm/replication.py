@@ -382,7 +382,7 @@ class Replica:
                 max_bytes=int(o.max_bytes) if o.max_bytes > 0 else None,
                 max_age=float(o.max_age_s) if o.max_age_s > 0 else None,
                 duplicate_window=max(1.0, float(so.id_ttl_s)), allow_direct=True,
-                max_msg_size=16 * 1024 * 1024))
+                max_msg_size=min(16 << 20, int(o.max_bytes)) if o.max_bytes > 0 else 16 << 20))
             try:
                 await self.link.maps.create(self.lease_key, _pack(mine))
             except KeyWrongLastSequenceError:

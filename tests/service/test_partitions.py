@@ -1,0 +1,214 @@
+"""Network partitions of a replicated fleet (issue 23): two sides, A and B, each with its own
+Zenoh router and its own NATS JetStream nodes; the link between them cut for 8 s, then
+healed, while a client on each side streams acknowledged updates.
+
+The cut is one of three kinds: ``bridge`` (the Zenoh bridge router killed and restarted; the
+NATS routes between the sides reset), ``reset`` (every cross-side TCP link, Zenoh and NATS,
+reset and refused) and ``silent`` (every cross-side link stops moving bytes, connections held
+open). Topologies: the primary's side holds the NATS minority (1 of 3 nodes) or the majority;
+its standby on the same side, on the other side, or standbys on both (K = R = 3 as shipped:
+``--replicas 3``, quorum 2).
+
+Each run checks (``fleet_util.check_acks``): 0 acknowledged updates lost from the final map
+and its recordings, 0 applied twice, one acknowledging server at a time (from the acks'
+server ids and seqs), every recording replaying identical; the map writable on both sides
+within ``HEAL_BOUND_S`` of the heal; every server process still running (no restart).
+
+The whole matrix is ``make test-fleet`` (marker ``fleet``); ``make test`` runs two
+representative runs.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+from mcsm.natsrun import NatsCluster
+from mcsm_client.client import MapClient
+from mcsm_client.process import McsmProcess
+
+from tests.service.daemon_util import Daemon, start_router, wait_for
+from tests.service.fleet_util import StreamClient, TcpProxy, check_acks, replicated_server
+
+CUT_S = 8.0
+HEAL_BOUND_S = 20.0
+"""After the heal, each side's client gets a fresh ack within this many seconds: the lease's
+TTL (2 s), a rebuild of a deposed primary from its recording, and the client's backoff."""
+
+
+@dataclass
+class Sides:
+    """The two sides: routers, NATS nodes (``nats_a``/``nats_b``: indices), the links."""
+
+    tmp: Path
+    kind: str
+    nats_a: list[int]
+    nats_b: list[int]
+    cluster: NatsCluster | None = None
+    proxies: dict[tuple[int, int], TcpProxy] = field(default_factory=dict)
+    ra: tuple[McsmProcess, str] | None = None
+    rb: tuple[McsmProcess, str] | None = None
+    zlink: TcpProxy | None = None
+    bridge: McsmProcess | None = None
+    bridge_conf: Path | None = None
+
+    def side(self, i: int) -> str:
+        return "a" if i in self.nats_a else "b"
+
+    def start(self) -> None:
+        pending: dict[tuple[int, int], TcpProxy] = {}
+
+        def via(i: int, j: int) -> str:
+            return pending[(i, j)].endpoint
+
+        # one proxy per (dialer, dialled) pair, towards the dialled node's cluster port,
+        # made once the ports are known
+        c = NatsCluster(self.tmp / "nats", route_via=lambda i, j: "127.0.0.1:1")
+        for i in range(3):
+            for j in range(3):
+                if i != j:
+                    pending[(i, j)] = TcpProxy(f"127.0.0.1:{c.nodes[j].cluster_port}")
+        c.route_via = via
+        for i, node in enumerate(c.nodes):
+            node.conf.write_text(c._config(i))
+        self.proxies = pending
+        self.cluster = c.start()
+        self.ra = start_router(self.tmp)
+        if self.kind == "bridge":
+            self.rb = start_router(self.tmp)
+            self.bridge_conf = self.tmp / "bridge.json5"
+            self.bridge_conf.write_text(json.dumps({
+                "mode": "router", "connect": {"endpoints": [self.ra[1], self.rb[1]]},
+                "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}}}))
+            self._start_bridge()
+        else:
+            self.zlink = TcpProxy(self.ra[1].split("/", 1)[1])
+            conf = self.tmp / "rb.json5"
+            conf.write_text(json.dumps({
+                "mode": "router", "connect": {"endpoints": [f"tcp/{self.zlink.endpoint}"]},
+                "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}}}))
+            self.rb = start_router(self.tmp, "--zenoh-config", str(conf))
+
+    def _start_bridge(self) -> None:
+        assert self.bridge_conf is not None
+        self.bridge, _ = start_router(self.tmp, "--zenoh-config", str(self.bridge_conf))
+
+    def urls(self, side: str) -> list[str]:
+        assert self.cluster is not None
+        return [self.cluster.nodes[i].url for i in (self.nats_a if side == "a" else self.nats_b)]
+
+    def zenoh(self, side: str) -> str:
+        assert self.ra is not None and self.rb is not None
+        return self.ra[1] if side == "a" else self.rb[1]
+
+    def cut(self) -> None:
+        mode = "reset" if self.kind == "bridge" else self.kind
+        for (i, j), p in self.proxies.items():
+            if self.side(i) != self.side(j):
+                p.cut(mode)
+        if self.kind == "bridge":
+            assert self.bridge is not None
+            self.bridge.stop(signal.SIGKILL)
+        else:
+            assert self.zlink is not None
+            self.zlink.cut(mode)
+
+    def heal(self) -> None:
+        for p in self.proxies.values():
+            p.heal()
+        if self.kind == "bridge":
+            self._start_bridge()
+        else:
+            assert self.zlink is not None
+            self.zlink.heal()
+
+    def stop(self) -> None:
+        for r in (self.ra, self.rb):
+            if r is not None:
+                r[0].stop(signal.SIGKILL)
+        if self.bridge is not None:
+            self.bridge.stop(signal.SIGKILL)
+        if self.cluster is not None:
+            self.cluster.stop()
+        for p in [*self.proxies.values(), *([self.zlink] if self.zlink else [])]:
+            p.close()
+
+
+def _fresh_ack_after(client: StreamClient, t0: float) -> bool:
+    return any(a.t > t0 and not a.duplicate for a in client.acks())
+
+
+def run_partition(tmp: Path, kind: str, primary_side: str, standbys: str,
+                  daemons: list[Daemon]) -> None:
+    """One run: ``primary_side`` holds the NATS ``majority`` or ``minority``; ``standbys``:
+    ``same`` (one on the primary's side), ``other`` (one on the other side) or ``both``."""
+    nats_a, nats_b = ([0, 1], [2]) if primary_side == "majority" else ([0], [1, 2])
+    sides = Sides(tmp, kind, nats_a, nats_b)
+    clients: list[StreamClient] = []
+    try:
+        sides.start()
+        servers = {"p": replicated_server(tmp, "p", sides.zenoh("a"), sides.urls("a"),
+                                          role="primary")}
+        where = {"same": ["a"], "other": ["b"], "both": ["a", "b"]}[standbys]
+        for k, side in enumerate(where):
+            servers[f"s{k}"] = replicated_server(tmp, f"s{k}", sides.zenoh(side),
+                                                 sides.urls(side))
+        daemons += servers.values()
+        with MapClient(map="m", connect=sides.zenoh("a"), timeout_s=30.0) as w:
+            wait_for("the standbys consume", lambda: len(w.info().standbys) == len(where))
+        clients = [StreamClient(tmp, sides.zenoh("a"), 0), StreamClient(tmp, sides.zenoh("b"), 1)]
+        wait_for("both clients acknowledged", lambda: all(len(c.acks()) >= 5 for c in clients))
+        sides.cut()
+        time.sleep(CUT_S)
+        t_heal = time.time()
+        sides.heal()
+        for c in clients:
+            wait_for("a fresh ack on each side after the heal",
+                     lambda c=c: _fresh_ack_after(c, t_heal), HEAL_BOUND_S)
+        time.sleep(1.0)
+        for c in clients:
+            assert c.stop() == 0, c.log.read_text()[-3000:]
+        for name, d in servers.items():
+            assert d.proc.poll() is None, f"{name} exited: {d.log_text()[-2000:]}"
+        with MapClient(map="m", connect=sides.zenoh("a"), timeout_s=30.0) as w:
+            final = w.info()
+            wait_for("every standby holds the head", lambda: len(w.info().standbys) ==
+                     len(where) and min(w.info().standbys.values()) >= final.seq, 30.0)
+        primary = next(n for n, d in servers.items() if _server_id(d) == final.server_id)
+        for name in [n for n in servers if n != primary]:
+            assert servers[name].stop() == 0
+        assert servers[primary].stop() == 0
+    finally:
+        for c in clients:
+            if c.proc.poll() is None:
+                c.proc.kill()
+        sides.stop()
+    acks = [a for c in clients for a in c.acks()]
+    got = check_acks(acks, servers[primary].record, final.digest,
+                     [d.record for d in servers.values()])
+    assert len(got) >= 10
+
+
+def _server_id(d: Daemon) -> str:
+    from mcsm.recording import TOPIC_CONFIG, RecordingReader
+
+    for item in RecordingReader(d.record):
+        if item.topic == TOPIC_CONFIG:
+            return str(item.data.get("server_id", ""))
+    return ""
+
+
+MATRIX = [(kind, side, sb) for kind in ("bridge", "reset", "silent")
+          for side in ("minority", "majority") for sb in ("same", "other", "both")]
+IN_MAKE_TEST = {("reset", "minority", "other"), ("silent", "majority", "both")}
+
+
+@pytest.mark.parametrize(("kind", "primary_side", "standbys"), [
+    pytest.param(*m, marks=[] if m in IN_MAKE_TEST else [pytest.mark.fleet]) for m in MATRIX])
+def test_partition(tmp_path: Path, daemons: list[Daemon], kind: str, primary_side: str,
+                   standbys: str) -> None:
+    run_partition(tmp_path, kind, primary_side, standbys, daemons)
