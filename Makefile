@@ -4,11 +4,12 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: run test lint bench experiments clean help
+.PHONY: run test test-fleet lint bench experiments clean help
 
 help:
 	@echo "make run    start a server, run the paper simulation and the multi-robot demo against it"
-	@echo "make test   lint, type-check and run the whole test suite"
+	@echo "make test   lint, type-check and run the test suite (all but the fleet matrix)"
+	@echo "make test-fleet  the replicated fleet's whole partition and endpoint matrix (~10 min)"
 	@echo "make bench  benchmarks and experiments (figures into experiments/results/)"
 
 # Re-install (and rebuild the compiled kernel) only when the packaging or the kernel source
@@ -27,7 +28,10 @@ lint: $(STAMP)
 	$(PY) -m mypy --strict service/mcsm clients/mcsm_client
 
 test: lint
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -m "not fleet"
+
+test-fleet: $(STAMP)
+	$(PY) -m pytest -q -m fleet
 
 bench: $(STAMP)
 	$(PY) benchmarks/run_all.py

@@ -6,7 +6,6 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-
 from mcsm.natsrun import NatsCluster
 
 from tests.service.daemon_util import Daemon

@@ -24,7 +24,7 @@ from mcsm_client.cli import main as client_main
 from mcsm_client.client import MapClient
 
 from tests.service.daemon_util import Daemon, noisy_at, start_router, wait_for
-from tests.service.fleet_util import N, REPO, inputs, replicated_server
+from tests.service.fleet_util import REPO, N, inputs, replicated_server
 
 
 def _records_valid(path: Path) -> None:
