@@ -57,8 +57,8 @@ def test_listen_and_connect(tmp_path: Path, daemons: list[Daemon], nats: NatsClu
                     seq += 1
                     assert c.update(f"r/{seq}", f"r/{seq + 1}",
                                     noisy_at(rng, N, [1, 0, 0])).seq == seq
-                wait_for("the standby consumes", lambda c=c: c.info().standbys and
-                         min(c.info().standbys.values()) == seq, 30.0)
+                wait_for("the standby consumes", lambda c=c, n=seq: c.info().standbys and
+                         min(c.info().standbys.values()) == n, 30.0)
                 first = c.info()
         p.proc.send_signal(signal.SIGKILL)
         p.proc.wait(timeout=30)
