@@ -99,9 +99,11 @@ def build_parser() -> argparse.ArgumentParser:
     rt.add_argument("--zenoh-config", default=None, metavar="FILE",
                     help="Zenoh JSON5 config (TLS, access control); its mode becomes router")
     rt.add_argument("--log-level", default="INFO")
-    sub.add_parser("nats-cluster", add_help=False,
-                   help="run a NATS JetStream cluster on this machine for a replicated fleet "
-                        "(mcsm nats-cluster --help)")
+    from mcsm.natsrun import add_arguments as add_nats_cluster_args
+
+    add_nats_cluster_args(sub.add_parser(
+        "nats-cluster", help="run a NATS JetStream cluster on this machine: the replicated "
+        "log of a fleet's maps (docs/fleet.md)"))
     s.add_argument("--samples", type=int, default=so.map_options["n_samples"], metavar="N",
                    help="samples per AT for new maps (default %(default)s)")
     s.add_argument("--method", choices=METHODS, default=mo["method"],
@@ -228,16 +230,16 @@ def main(argv: list[str] | None = None) -> int:
 
     # `mcsm --listen X serve` works like `mcsm serve --listen X`
     argv = flags_after_command(sys.argv[1:] if argv is None else list(argv), "serve")
-    if argv[:1] == ["nats-cluster"]:
-        from mcsm.natsrun import main as nats_cluster
-
-        return nats_cluster(argv[1:])
     args = build_parser().parse_args(argv)
     try:
         if args.command == "serve":
             return serve(args)
         if args.command == "router":
             return router_cmd(args)
+        if args.command == "nats-cluster":
+            from mcsm.natsrun import run as nats_cluster
+
+            return nats_cluster(args)
         if args.command == "replay":
             return replay_cmd(args)
         if args.command == "recover":

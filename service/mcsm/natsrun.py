@@ -30,8 +30,10 @@ import urllib.request
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
-__all__ = ["NatsCluster", "NatsNode", "nats_server_binary", "free_port", "main"]
+__all__ = ["NatsCluster", "NatsNode", "add_arguments", "free_port", "main", "nats_server_binary",
+           "run"]
 
 
 def nats_server_binary() -> str:
@@ -221,12 +223,8 @@ class NatsCluster:
         self.stop()
 
 
-def main(argv: list[str]) -> int:
-    """``mcsm nats-cluster``: run a JetStream cluster on this machine until SIGINT/SIGTERM."""
-    import argparse
-    import threading
-
-    ap = argparse.ArgumentParser(prog="mcsm nats-cluster", description=__doc__.split("\n")[0])
+def add_arguments(ap: Any) -> None:
+    """The flags of ``mcsm nats-cluster`` (an :class:`argparse.ArgumentParser`)."""
     ap.add_argument("--dir", type=Path, required=True,
                     help="where the nodes' configs, logs and JetStream stores go (kept: a "
                          "restart on the same directory and ports keeps the streams)")
@@ -237,7 +235,21 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--auth", type=Path, default=None, metavar="FILE",
                     help="a nats-server config fragment with the users (deploy/: "
                          "nats-auth.conf, made by make_secrets.py)")
-    args = ap.parse_args(argv)
+
+
+def main(argv: list[str]) -> int:
+    """``mcsm nats-cluster`` on its own argument list."""
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="mcsm nats-cluster", description=__doc__.split("\n")[0])
+    add_arguments(ap)
+    return run(ap.parse_args(argv))
+
+
+def run(args: Any) -> int:
+    """``mcsm nats-cluster``: run a JetStream cluster on this machine until SIGINT/SIGTERM."""
+    import threading
+
     if args.nodes < 1:
         print("mcsm nats-cluster: --nodes must be >= 1", file=sys.stderr)
         return 2

@@ -438,14 +438,14 @@ class Replica:
 
     # ------------------------------------------------------------ the lease
     async def _acquire(self) -> bool:
-        from nats.js.errors import KeyWrongLastSequenceError
+        from nats.js.errors import KeyNotFoundError, KeyWrongLastSequenceError
 
         t0 = time.monotonic()
         try:
             rev = await asyncio.wait_for(self.link.leases.create(
                 self.lease_key, self.server.server_id.encode()), self.link.lease_ttl_s / 2)
-        except KeyWrongLastSequenceError:
-            return False
+        except (KeyWrongLastSequenceError, KeyNotFoundError):
+            return False  # held (or expiring while nats-py looked: try again)
         self.lease_rev = self.term = int(rev)
         self.holding = True
         self.valid_until = t0 + VALID_FRACTION * self.link.lease_ttl_s
