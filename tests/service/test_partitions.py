@@ -14,8 +14,8 @@ and its recordings, 0 applied twice, one acknowledging server at a time (from th
 server ids and seqs), every recording replaying identical; the map writable on both sides
 within ``HEAL_BOUND_S`` of the heal; every server process still running (no restart).
 
-The whole matrix is ``make test-fleet`` (marker ``fleet``); ``make test`` runs two
-representative runs.
+The whole matrix is ``make test-fleet`` (marker ``fleet``); ``make test`` runs one
+representative run (the primary cut off on the minority side, its standby across the cut).
 """
 
 from __future__ import annotations
@@ -204,7 +204,7 @@ def _server_id(d: Daemon) -> str:
 
 MATRIX = [(kind, side, sb) for kind in ("bridge", "reset", "silent")
           for side in ("minority", "majority") for sb in ("same", "other", "both")]
-IN_MAKE_TEST = {("reset", "minority", "other"), ("silent", "majority", "both")}
+IN_MAKE_TEST = {("reset", "minority", "other")}
 
 
 @pytest.mark.parametrize(("kind", "primary_side", "standbys"), [
