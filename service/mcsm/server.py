@@ -165,7 +165,8 @@ class Server:
         if o.standby_of and o.restore is not None:
             raise McsmError("a standby copies its state from the log: --standby-of "
                             "cannot be combined with --restore")
-        self.check_not_served(list(o.maps))
+        if o.nats is None:  # a replicated map is refused by its lease (Replica.start)
+            self.check_not_served(list(o.maps))
         if o.record is not None:
             if o.restore is not None and Path(o.record).resolve() == Path(o.restore).resolve():
                 raise RecordingError(str(o.record), "--record must differ from --restore "
@@ -206,8 +207,9 @@ class Server:
             self.states[name] = st
             if self.recorder is not None and o.nats is None:
                 self.recorder.config(st, o.checkpoint_every, server_id=self.server_id)
-        self.check_not_served([n for n in self.states if n not in o.maps])  # restored maps
-        if o.nats is not None:
+        if o.nats is None:
+            self.check_not_served([n for n in self.states if n not in o.maps])  # restored
+        else:
             self._start_replicas(restored)
         self._worker = threading.Thread(target=self._run, name="mcsm-worker", daemon=True)
         self._worker.start()
@@ -247,8 +249,10 @@ class Server:
             self.replicas[name] = r
 
     def check_not_served(self, names: list[str], timeout_s: float = 2.0) -> None:
-        """Refuse maps another live server already serves (its liveliness token is seen):
-        two primaries of one map would fork it.
+        """A server without ``--nats``: refuse maps another live server already serves (its
+        liveliness token is seen), since two servers of one map would fork it. A replicated
+        map is refused by its lease instead, and only by it (:meth:`Replica.start`): the
+        token is the primary's address for clients, not a claim on the map.
 
         Raises
         ------
@@ -409,7 +413,7 @@ class Server:
         from mcsm.replication import TAKEOVER
 
         st = r.st
-        if self._closed or st is None or r.dirty or r.stopped is not None or not r.holding:
+        if self._closed or st is None or r.dirty or r.stopped is not None or not r.lease.holding:
             return False
         r.role = "primary"
         self.states[st.name] = st
@@ -534,8 +538,8 @@ class Server:
             from mcsm.replication import Entry, Refused
 
             try:
-                rep.append(st, Entry(ack.seq, item.op, item.recv_ns, item.sender,
-                                     req.request_id, item.payload, digest))
+                rep.append(Entry(ack.seq, item.op, item.recv_ns, item.sender, req.request_id,
+                                 item.payload, digest))
             except Refused as exc:
                 log.warning("map %r: the log refused seq %d: %s", st.name, ack.seq, exc)
                 self.demote(rep, f"the log refused seq {ack.seq}: {exc}")
