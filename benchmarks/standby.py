@@ -9,12 +9,14 @@ updates/s and ack latency p50/p99.
 Part 2, takeover: a primary and two standbys on the log; a client streams updates; the
 primary is SIGKILLed ``--kills`` times at random points (the killed one comes back as a new
 standby each time). For each kill: the time from SIGKILL to the client's next acknowledged
-update (what a robot sees: the lease's TTL, 2 s, then the standby applying the log's tail and
-declaring the map); before each kill both standbys hold the log (lag <= 2). Then one
+update (what a robot sees: the lease's TTL, ``--lease-ttl``, 2 s by default, then the
+standby applying the log's tail and declaring the map); before each kill both standbys hold
+the log (lag <= 2). Then one
 graceful stop (SIGINT: the lease is released): SIGINT -> next ack. Prints median and worst.
 
 All processes on 127.0.0.1; the machine has 2 cores shared by every process here.
-Run: ``.venv/bin/python benchmarks/standby.py [--samples 1000] [--updates 300] [--kills 5]``.
+Run: ``.venv/bin/python benchmarks/standby.py [--samples 1000] [--updates 300] [--kills 5]
+[--lease-ttl 2] [--takeover-only]``.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from mcsm_client.process import McsmProcess, ServerProcess, loopback_endpoint
 from mcsm_client.sampling import sample_planar
 
 NATS: list[str] = []
+LEASE: list[str] = []  # --lease-ttl S for every server (the first server sets the bucket's)
 
 
 def _router() -> tuple[McsmProcess, str]:
@@ -41,7 +44,8 @@ def _router() -> tuple[McsmProcess, str]:
 
 def _server(run: Path, name: str, n: int, *args: str) -> ServerProcess:
     """``mcsm serve`` joined to the router (``--connect`` in ``args``), log beside its file."""
-    return ServerProcess(run / f"{name}.mcap", n_samples=n, extra_args=args, endpoint="-",
+    extra = [*args, *LEASE] if "--nats" in args else list(args)
+    return ServerProcess(run / f"{name}.mcap", n_samples=n, extra_args=extra, endpoint="-",
                          listen=False).start()
 
 
@@ -104,7 +108,7 @@ def part1(n: int, updates: int, tmp: Path) -> None:
               f"{np.percentile(ms, 99):8.2f}", flush=True)
 
 
-def part2(n: int, kills: int, tmp: Path, seed: int) -> None:
+def part2(n: int, kills: int, tmp: Path, seed: int, ttl: float) -> None:
     run = tmp / "takeover"
     run.mkdir()
     router, ep = _router()
@@ -166,7 +170,7 @@ def part2(n: int, kills: int, tmp: Path, seed: int) -> None:
         for d in procs.values():
             d.stop(signal.SIGKILL)
         router.stop()
-    print(f"takeover over {kills} kills (primary + 2 standbys, log R = 3, lease TTL 2 s, "
+    print(f"takeover over {kills} kills (primary + 2 standbys, log R = 3, lease TTL {ttl:g} s, "
           f"N = {n}):")
     for label, xs in (("SIGKILL -> client's next ack", kill_to_ack),
                       ("SIGINT -> client's next ack", stop_to_ack)):
@@ -181,14 +185,19 @@ def main() -> None:
     ap.add_argument("--updates", type=int, default=300)
     ap.add_argument("--kills", type=int, default=5)
     ap.add_argument("--seed", type=int, default=20261123)
+    ap.add_argument("--lease-ttl", type=float, default=2.0,
+                    help="every server's --lease-ttl (default 2, mcsm serve's default)")
+    ap.add_argument("--takeover-only", action="store_true", help="part 2 only")
     args = ap.parse_args()
     from mcsm.natsrun import NatsCluster
 
+    LEASE[:] = ["--lease-ttl", f"{args.lease_ttl:g}"]
     with tempfile.TemporaryDirectory() as d:
         with NatsCluster(Path(d) / "nats") as cluster:
             NATS[:] = cluster.urls
-            part1(args.samples, args.updates, Path(d))
-            part2(args.samples, args.kills, Path(d), args.seed)
+            if not args.takeover_only:
+                part1(args.samples, args.updates, Path(d))
+            part2(args.samples, args.kills, Path(d), args.seed, args.lease_ttl)
 
 
 if __name__ == "__main__":

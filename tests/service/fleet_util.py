@@ -16,15 +16,21 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from mcsm.natsrun import NatsCluster
-from mcsm.recording import TOPIC_OPS, RecordingReader, replay
+from mcsm.recording import (
+    TOPIC_CHECKPOINT,
+    TOPIC_CONFIG,
+    TOPIC_OPS,
+    RecordingReader,
+    replay,
+)
 
 from tests.service.daemon_util import Daemon, start_daemon
 
 REPO = Path(__file__).resolve().parents[2]
 N = 32
 
-__all__ = ["Ack", "NatsCluster", "StreamClient", "TcpProxy", "check_acks", "inputs",
-           "replicated_server"]
+__all__ = ["LEASE_TTL_S", "Ack", "NatsCluster", "StreamClient", "TcpProxy", "Term", "check_acks",
+           "inputs", "replicated_server", "terms"]
 
 
 class TcpProxy:
@@ -138,13 +144,19 @@ def _reset(s: socket.socket) -> None:
         pass
 
 
+LEASE_TTL_S = float(os.environ.get("MCSM_TEST_LEASE_TTL", "2"))
+"""The servers' ``--lease-ttl`` (mcsm serve's default, 2 s; ``MCSM_TEST_LEASE_TTL`` changes it
+for a measurement: docs/fleet.md, "Choosing --lease-ttl")."""
+
+
 def replicated_server(tmp: Path, name: str, zenoh: str, nats: list[str], *args: str,
                       role: str = "standby") -> Daemon:
     """``mcsm serve`` of map ``m`` joined to router ``zenoh`` and the NATS nodes ``nats``:
     the primary (``role="primary"``: ``--map m``) or a standby (``--standby-of m``)."""
     which = ["--map", "m"] if role == "primary" else ["--standby-of", "m"]
     return start_daemon(tmp, "--samples", str(N), *which, "--connect", zenoh, "--nats",
-                        ",".join(nats), "--lease-ttl", "2", *args, name=name, endpoint="-")
+                        ",".join(nats), "--lease-ttl", f"{LEASE_TTL_S:g}", *args, name=name,
+                        endpoint="-")
 
 
 @dataclass(frozen=True)
@@ -154,6 +166,8 @@ class Ack:
     server: str
     t: float
     duplicate: bool
+    sent: float
+    """When the client first sent the update: the server acknowledged it after that."""
 
 
 class StreamClient:
@@ -175,8 +189,8 @@ class StreamClient:
             return []
         out = []
         for line in self.acks_path.read_text().splitlines():
-            rid, seq, server, t, dup = line.split()
-            out.append(Ack(rid, int(seq), server, float(t), dup == "1"))
+            rid, seq, server, t, dup, sent = line.split()
+            out.append(Ack(rid, int(seq), server, float(t), dup == "1", float(sent)))
         return out
 
     def stop(self, timeout_s: float = 120.0) -> int:
@@ -202,15 +216,45 @@ def inputs(path: Path) -> dict[int, str]:
     return out
 
 
+@dataclass(frozen=True)
+class Term:
+    """A server's time as the map's primary, from its recording: from ``seq`` (the map's seq
+    when it took over) and wall time ``t`` (its ``takeover`` checkpoint, written after it held
+    the lease and before it acknowledged anything)."""
+
+    server: str
+    seq: int
+    t: float
+
+
+def terms(records: list[Path], first_primary: str) -> list[Term]:
+    """Every primary term of map ``m`` in time order: ``first_primary`` (a server id) from
+    seq 0, then each recording's ``takeover`` checkpoints."""
+    out = [Term(first_primary, 0, float("-inf"))]
+    for p in records:
+        sid = ""
+        for item in RecordingReader(p):
+            if item.topic == TOPIC_CONFIG:
+                sid = str(item.data.get("server_id", ""))
+            elif item.topic == TOPIC_CHECKPOINT and item.data.get("reason") == "takeover" \
+                    and item.data.get("map") == "m":
+                out.append(Term(sid, int(item.data["seq"]), item.log_time_ns / 1e9))
+    return sorted(out, key=lambda x: x.t)
+
+
 def check_acks(acks: list[Ack], final_record: Path, final_digest: str,
-               records: list[Path]) -> dict[str, int]:
+               records: list[Path], first_primary: str) -> dict[str, int]:
     """The promises under faults, from the clients' acks and the servers' recordings:
 
     * every acknowledged request id is in the final map's recording under its acked seq
       (0 lost), and no id is recorded twice (0 applied twice); the recording's seqs are
       1..head and it replays to ``final_digest``;
-    * at most one server acknowledged at any time: in seq order, the (non-duplicate) acks
-      form runs of one server each, and no two servers acked the same seq;
+    * at most one server acknowledged at any time: no two servers acked the same seq; the
+      primary terms (:func:`terms`) follow each other in seq order; each fresh ack of seq
+      ``s`` comes from the server whose term holds ``s`` (the last takeover below ``s``), and
+      that server had the request (the client sent it, the server received it: its
+      ``recv_ns`` in the log) before the next term's takeover, so it acknowledged it before
+      another server could;
     * every other recording replays identical and agrees with the final one on every seq
       both hold.
 
@@ -227,15 +271,27 @@ def check_acks(acks: list[Ack], final_record: Path, final_digest: str,
     assert not lost, f"acknowledged updates lost or moved: {sorted(lost.items())[:5]}"
     rep = replay(final_record)
     assert rep.divergence is None and rep.final_digests()["m"] == final_digest
-    # one acknowledging server at a time: seq order gives runs of one server each
-    fresh = sorted((a.seq, a.server) for a in acks if not a.duplicate)
+    received = {int(it.data["seq"]): it.data["recv_ns"] / 1e9
+                for it in RecordingReader(final_record)
+                if it.topic in TOPIC_OPS and it.data.get("map") == "m"}
     by_seq: dict[int, str] = {}
-    for seq, srv in fresh:
-        assert by_seq.setdefault(seq, srv) == srv, f"seq {seq} acked by two servers"
-    runs: list[str] = []
-    for _, srv in sorted(by_seq.items()):
-        if not runs or runs[-1] != srv:
-            runs.append(srv)
+    for a in acks:
+        if not a.duplicate:
+            assert by_seq.setdefault(a.seq, a.server) == a.server, \
+                f"seq {a.seq} acked by two servers"
+    ts = terms(records, first_primary)
+    assert [x.seq for x in ts] == sorted(x.seq for x in ts), f"terms out of seq order: {ts}"
+    for a in acks:
+        if a.duplicate:
+            continue
+        k = max(i for i, x in enumerate(ts) if x.seq < a.seq)
+        assert ts[k].server == a.server, \
+            f"seq {a.seq} acked by {a.server} in {ts[k].server}'s term: {ts}"
+        if k + 1 < len(ts):
+            start = max(a.sent, received[a.seq])
+            assert start < ts[k + 1].t, \
+                f"seq {a.seq} acked by {a.server} after {ts[k + 1].server} took over: " \
+                f"request at {start:.3f}, takeover at {ts[k + 1].t:.3f}"
     for p in records:
         r = replay(p)
         assert r.divergence is None, f"{p.name}: {r.divergence}"

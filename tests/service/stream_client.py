@@ -4,8 +4,9 @@ chain until a stop file appears.
 ``python -m tests.service.stream_client ENDPOINT MAP NO N ACKS STOPFILE TIMEOUT_S``: updates
 ``c<no>/k -> c<no>/k+1`` with request ids ``c<no>-<k>`` and a TIMEOUT_S deadline each (the
 client retries through takeovers and partitions with the same id). After each ack it appends
-``request_id seq server time duplicate`` to ACKS (flushed; time: ``time.time()`` when the
-ack arrived). Exit 0 when every update it sent was acknowledged.
+``request_id seq server time duplicate sent`` to ACKS (flushed; ``time``: ``time.time()`` when
+the ack arrived; ``sent``: when the update was first sent, so no server acknowledged it
+before then). Exit 0 when every update it sent was acknowledged.
 """
 
 from __future__ import annotations
@@ -30,9 +31,10 @@ def main(argv: list[str]) -> int:
             if stop_path.exists():
                 break
             x = sample_planar([1.0, 0.0, 0.0], cov, n_samples=n_samples, rng=rng)
+            sent = time.time()
             ack = c.update(f"c{c_no}/{k}", f"c{c_no}/{k + 1}", x, request_id=f"c{c_no}-{k}")
             out.write(f"{ack.request_id} {ack.seq} {ack.server} {time.time():.6f} "
-                      f"{int(ack.duplicate)}\n")
+                      f"{int(ack.duplicate)} {sent:.6f}\n")
             out.flush()
     return 0
 

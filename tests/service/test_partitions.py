@@ -23,6 +23,7 @@ from __future__ import annotations
 import json
 import signal
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -32,9 +33,17 @@ from mcsm_client.client import MapClient
 from mcsm_client.process import McsmProcess
 
 from tests.service.daemon_util import Daemon, start_router, wait_for
-from tests.service.fleet_util import StreamClient, TcpProxy, check_acks, replicated_server
+from tests.service.fleet_util import (
+    LEASE_TTL_S,
+    StreamClient,
+    TcpProxy,
+    check_acks,
+    replicated_server,
+)
 
 CUT_S = 8.0
+STANDBY_BOUND_S = 30.0
+"""After the clients stop, every standby reports the head within this many seconds."""
 HEAL_BOUND_S = 20.0
 """After the heal, each side's client gets a fresh ack within this many seconds: the lease's
 TTL (2 s), a rebuild of a deposed primary from its recording, and the client's backoff."""
@@ -76,8 +85,15 @@ class Sides:
         for i, node in enumerate(c.nodes):
             node.conf.write_text(c._config(i))
         self.proxies = pending
-        self.cluster = c.start()
-        self.ra = start_router(self.tmp)
+        self.cluster = c
+        with ThreadPoolExecutor(1) as pool:  # the NATS nodes start while the routers do
+            started = pool.submit(c.start)
+            self.ra = start_router(self.tmp)
+            self._start_rb()
+            started.result()
+
+    def _start_rb(self) -> None:
+        assert self.ra is not None
         if self.kind == "bridge":
             self.rb = start_router(self.tmp)
             self.bridge_conf = self.tmp / "bridge.json5"
@@ -151,17 +167,26 @@ def run_partition(tmp: Path, kind: str, primary_side: str, standbys: str,
     clients: list[StreamClient] = []
     try:
         sides.start()
-        servers = {"p": replicated_server(tmp, "p", sides.zenoh("a"), sides.urls("a"),
-                                          role="primary")}
         where = {"same": ["a"], "other": ["b"], "both": ["a", "b"]}[standbys]
-        for k, side in enumerate(where):
-            servers[f"s{k}"] = replicated_server(tmp, f"s{k}", sides.zenoh(side),
-                                                 sides.urls(side))
-        daemons += servers.values()
+        servers: dict[str, Daemon] = {}
+        with ThreadPoolExecutor(len(where)) as pool:  # standbys wait for the map's log
+            later = {f"s{k}": pool.submit(replicated_server, tmp, f"s{k}", sides.zenoh(side),
+                                          sides.urls(side)) for k, side in enumerate(where)}
+            try:
+                servers["p"] = replicated_server(tmp, "p", sides.zenoh("a"), sides.urls("a"),
+                                                 role="primary")
+            finally:  # every started server is stopped at teardown, whatever failed
+                for name, f in later.items():
+                    if f.exception() is None:
+                        servers[name] = f.result()
+                daemons += servers.values()
+        for f in later.values():
+            f.result()  # a standby that did not start fails the test with its reason
         with MapClient(map="m", connect=sides.zenoh("a"), timeout_s=30.0) as w:
             wait_for("the standbys consume", lambda: len(w.info().standbys) == len(where))
         clients = [StreamClient(tmp, sides.zenoh("a"), 0), StreamClient(tmp, sides.zenoh("b"), 1)]
         wait_for("both clients acknowledged", lambda: all(len(c.acks()) >= 5 for c in clients))
+        t_cut = time.time()
         sides.cut()
         time.sleep(CUT_S)
         t_heal = time.time()
@@ -169,6 +194,12 @@ def run_partition(tmp: Path, kind: str, primary_side: str, standbys: str,
         for c in clients:
             wait_for("a fresh ack on each side after the heal",
                      lambda c=c: _fresh_ack_after(c, t_heal), HEAL_BOUND_S)
+        writable = [min(a.t for a in c.acks() if a.t > t_heal and not a.duplicate) - t_heal
+                    for c in clients]
+        (tmp / "partition.json").write_text(json.dumps({  # for benchmarks/partition_summary.py
+            "kind": kind, "primary_side": primary_side, "standbys": standbys,
+            "lease_ttl_s": LEASE_TTL_S, "t_cut": t_cut, "t_heal": t_heal,
+            "heal_to_fresh_ack_s": writable}))
         time.sleep(1.0)
         for c in clients:
             assert c.stop() == 0, c.log.read_text()[-3000:]
@@ -176,8 +207,16 @@ def run_partition(tmp: Path, kind: str, primary_side: str, standbys: str,
             assert d.proc.poll() is None, f"{name} exited: {d.log_text()[-2000:]}"
         with MapClient(map="m", connect=sides.zenoh("a"), timeout_s=30.0) as w:
             final = w.info()
-            wait_for("every standby holds the head", lambda: len(w.info().standbys) ==
-                     len(where) and min(w.info().standbys.values()) >= final.seq, 30.0)
+            seen: list[dict[str, int]] = []
+
+            def caught_up() -> bool:
+                seen.append(w.info().standbys)
+                return len(seen[-1]) == len(where) and min(seen[-1].values()) >= final.seq
+
+            try:
+                wait_for(f"every standby at seq {final.seq}", caught_up, STANDBY_BOUND_S)
+            except AssertionError as exc:
+                raise AssertionError(f"{exc}; info.standbys last: {seen[-1:]}") from None
         primary = next(n for n, d in servers.items() if _server_id(d) == final.server_id)
         for name in [n for n in servers if n != primary]:
             assert servers[name].stop() == 0
@@ -189,7 +228,7 @@ def run_partition(tmp: Path, kind: str, primary_side: str, standbys: str,
         sides.stop()
     acks = [a for c in clients for a in c.acks()]
     got = check_acks(acks, servers[primary].record, final.digest,
-                     [d.record for d in servers.values()])
+                     [d.record for d in servers.values()], _server_id(servers["p"]))
     assert len(got) >= 10
 
 
