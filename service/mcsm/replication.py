@@ -74,7 +74,7 @@ from mcsm.replication_defaults import (
     DEFAULT_REPLICAS,
 )
 from mcsm.replication_lease import Lease
-from mcsm.replication_link import NatsLink, NatsOptions, stream_name
+from mcsm.replication_link import NatsLink, NatsOptions, retry, stream_name
 from mcsm.replication_log import Entry, MapLog, Refused, pack_entry, pack_obj
 from mcsm.state import MapState
 
@@ -145,7 +145,7 @@ class Replica:
             replicated map already served), or the stream exists and this server restored
             another state.
         """
-        self.link.run(self._setup(), timeout_s)
+        self.link.run(self._setup(time.monotonic() + timeout_s - 1.0), timeout_s)
         self._task = self.link.spawn(self._main())
         self._task.add_done_callback(self._loop_ended)
 
@@ -155,31 +155,28 @@ class Replica:
         exc = None if fut.cancelled() else fut.exception()
         self._stop_following(f"its replication loop ended: {exc!r}")
 
-    async def _setup(self) -> None:
-        from nats.js.errors import KeyNotFoundError
-
-        cfg = await self.log.read_config()
+    async def _setup(self, deadline: float) -> None:
+        cfg = await retry("the map's config", self.log.read_config, deadline)
         if cfg is None and self.claim:
             st = self.st
             assert st is not None
             if st.seq > 0:  # a restored map: its stream starts at its seq, from a snapshot
-                await self.log.upload(self._snapshot_blob(st))
-            await self.log.create(self._config_of(st), self.server.opts.id_ttl_s)
-            cfg = await self.log.read_config()
+                blob = self._snapshot_blob(st)
+                await retry("the map's snapshot", lambda: self.log.upload(blob), deadline)
+            mine = self._config_of(st)
+            await retry("the map's log", lambda: self.log.create(
+                mine, self.server.opts.id_ttl_s), deadline)
+            cfg = await retry("the map's config", self.log.read_config, deadline)
         if cfg is not None:
             self._use_config(cfg)
         if not self.claim:
             return
-        try:
-            ok = await self.lease.acquire()
-        except KeyNotFoundError:
-            ok = False
-        if not ok:
+        if not await retry("the map's lease", self.lease.acquire, deadline):
             holder = await self.lease.holder_now()
             raise McsmError(f"map {self.name!r} is served by server {holder} (it holds the "
                             "map's lease): refusing to serve it a second time (to follow it, "
                             f"start this server with --standby-of {self.name})")
-        last = await self._head_at_start()
+        last = await retry("the log's head", self.log.head, deadline)
         if self.st is not None and self.st.seq > 0 and self.st.seq != self.base + last:
             await self.lease.release()
             raise McsmError(f"map {self.name!r}: its log holds {last} inputs after seq "
@@ -187,22 +184,6 @@ class Replica:
                             "without --restore (it catches up from the log)")
         if self.st is not None and self.st.seq == 0 and last > 0:
             self.st = None  # a new empty map, but the log has the map: build it from there
-
-    async def _head_at_start(self, timeout_s: float = 30.0) -> int:
-        """The log's head (stream seq) while starting: a stream just made may have no leader
-        for a moment."""
-        t_end = time.monotonic() + timeout_s
-        for _ in range(1_000):  # bounded by the deadline
-            try:
-                return await self.log.head()
-            except Refused:
-                raise
-            except Exception as exc:  # no leader yet, or no answer: again, bounded
-                if time.monotonic() > t_end:
-                    raise McsmError(f"map {self.name!r}: its log has no leader: "
-                                    f"{type(exc).__name__}: {exc}") from None
-                await asyncio.sleep(0.1)
-        raise McsmError(f"map {self.name!r}: its log has no leader")
 
     def _config_of(self, st: MapState) -> dict[str, Any]:
         return {"options": st.map.options(), "n_samples": st.n_samples,

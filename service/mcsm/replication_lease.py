@@ -59,15 +59,26 @@ class Lease:
         self.valid_until = 0.0
 
     async def acquire(self) -> bool:
-        """Take the lease if no one holds it; False if held (or expiring as we looked)."""
+        """Take the lease if no one holds it; False if held (or expiring as we looked). A
+        lease that holds this server's id is this server's (an earlier try whose answer was
+        lost made it): it is renewed by its revision and kept."""
         from nats.js.errors import KeyNotFoundError, KeyWrongLastSequenceError
 
         t0 = time.monotonic()
         try:
             rev = await asyncio.wait_for(self.kv.create(self.key, self.holder.encode()),
                                          self.ttl_s / 2)
-        except (KeyWrongLastSequenceError, KeyNotFoundError):
+        except KeyNotFoundError:
             return False
+        except KeyWrongLastSequenceError:
+            try:
+                e = await asyncio.wait_for(self.kv.get(self.key), self.ttl_s / 4)
+            except KeyNotFoundError:
+                return False
+            if bytes(e.value or b"") != self.holder.encode():
+                return False
+            self.rev = self.term = int(e.revision or 0)
+            return await self.renew() is True
         self._granted(t0, rev)
         self.term = self.rev
         return True

@@ -13,7 +13,8 @@ import json
 import logging
 import re
 import threading
-from collections.abc import Coroutine
+import time
+from collections.abc import Awaitable, Callable, Coroutine
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
@@ -76,6 +77,32 @@ class NatsOptions:
         return {str(k): str(v) for k, v in d.items()}
 
 
+async def retry(what: str, make: Callable[[], Awaitable[T]], deadline: float) -> T:
+    """``await make()``, again after each failure until ``deadline`` (monotonic), for the
+    idempotent steps of starting (opening buckets, making a map's stream): several servers
+    starting at once, or a cluster electing leaders, answer some of them late.
+
+    Raises
+    ------
+    McsmError
+        At once if ``make`` raised one (a refusal, not a transient failure).
+    Exception
+        ``make``'s last error once ``deadline`` passed.
+    """
+    for attempt in range(1, 1_000_000):  # bounded by the deadline
+        try:
+            return await make()
+        except McsmError:
+            raise
+        except Exception as exc:
+            if time.monotonic() > deadline:
+                raise
+            log.warning("nats: %s, try %d: %s: %s; again", what, attempt, type(exc).__name__,
+                        exc)
+            await asyncio.sleep(min(0.5, 0.05 * attempt))
+    raise McsmError(f"nats: {what}: too many tries")
+
+
 def nats_name(text: str) -> str:
     """A name for NATS (streams, subjects, keys): ``[A-Za-z0-9-]`` kept, the rest ``_xx``."""
     return re.sub(r"[^A-Za-z0-9-]", lambda m: f"_{ord(m.group()):02x}", text)
@@ -123,7 +150,7 @@ class NatsLink:
         """
         self._thread.start()
         try:
-            self.run(self._connect(), timeout_s)
+            self.run(self._connect(timeout_s - 1.0), timeout_s)
         except Exception as exc:
             self.close()
             raise McsmError(f"cannot use the NATS cluster {','.join(self.opts.urls)}: "
@@ -141,7 +168,7 @@ class NatsLink:
     def spawn(self, coro: Coroutine[Any, Any, Any]) -> Any:
         return asyncio.run_coroutine_threadsafe(coro, self.loop)
 
-    async def _connect(self) -> None:
+    async def _connect(self, timeout_s: float) -> None:
         import ssl
 
         import nats
@@ -173,16 +200,15 @@ class NatsLink:
             disconnected_cb=on_disc, reconnected_cb=on_reconn, **kw)
         self.js = self.nc.jetstream(timeout=5.0)
         r = max(1, int(o.replicas))
-        self.leases = await self._bucket(KeyValueConfig(
-            bucket=LEASE_BUCKET, history=1, ttl=float(o.lease_ttl_s), replicas=r))
-        self.maps = await self._bucket(KeyValueConfig(bucket=MAPS_BUCKET, history=1,
-                                                      replicas=r))
-        try:
-            self.snaps = await self.js.create_object_store(
-                SNAP_BUCKET, config=ObjectStoreConfig(replicas=r))
-        except Exception:  # made by another server with other settings: use it as it is
-            self.snaps = await self.js.object_store(SNAP_BUCKET)
-        info = await self.js.stream_info(f"KV_{LEASE_BUCKET}")
+        deadline = time.monotonic() + timeout_s
+        self.leases = await retry("the lease bucket", lambda: self._bucket(KeyValueConfig(
+            bucket=LEASE_BUCKET, history=1, ttl=float(o.lease_ttl_s), replicas=r)), deadline)
+        self.maps = await retry("the config bucket", lambda: self._bucket(KeyValueConfig(
+            bucket=MAPS_BUCKET, history=1, replicas=r)), deadline)
+        self.snaps = await retry("the snapshot store", lambda: self._store(
+            ObjectStoreConfig(replicas=r)), deadline)
+        info = await retry("the lease bucket's TTL", lambda: self.js.stream_info(
+            f"KV_{LEASE_BUCKET}"), deadline)
         ttl = float(info.config.max_age or 0.0)
         if ttl > 0 and abs(ttl - self.lease_ttl_s) > 1e-6:
             log.warning("the fleet's lease TTL is %.3g s (bucket %s), not --lease-ttl %.3g s",
@@ -194,6 +220,12 @@ class NatsLink:
             return await self.js.create_key_value(cfg)
         except Exception:  # exists with other settings (another server made it)
             return await self.js.key_value(cfg.bucket)
+
+    async def _store(self, cfg: Any) -> Any:
+        try:
+            return await self.js.create_object_store(SNAP_BUCKET, config=cfg)
+        except Exception:  # made by another server with other settings: use it as it is
+            return await self.js.object_store(SNAP_BUCKET)
 
     def close(self) -> None:
         if self.nc is not None:
@@ -207,4 +239,4 @@ class NatsLink:
 
 
 __all__ = ["LEASE_BUCKET", "MAPS_BUCKET", "SNAP_BUCKET", "NatsLink", "NatsOptions", "map_key",
-           "map_subject", "nats_name", "stream_name"]
+           "map_subject", "nats_name", "retry", "stream_name"]
