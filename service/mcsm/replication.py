@@ -60,7 +60,8 @@ import asyncio
 import logging
 import threading
 import time
-from typing import TYPE_CHECKING, Any
+from collections.abc import Awaitable, Callable
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from mcsm import wire
 from mcsm.core.smap import StochasticMap
@@ -82,6 +83,7 @@ if TYPE_CHECKING:
     from mcsm.server import Server
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 TAKEOVER = "takeover"
 """The event (``op`` and ``kind``) a standby publishes when it becomes the map's primary."""
@@ -156,27 +158,29 @@ class Replica:
         self._stop_following(f"its replication loop ended: {exc!r}")
 
     async def _setup(self, deadline: float) -> None:
-        cfg = await retry("the map's config", self.log.read_config, deadline)
+        """With ``claim``, the lease first: a standby sees a new map's config only once its
+        primary holds the lease, so it never takes over a map whose primary is starting."""
+        if self.claim and not await retry("the map's lease", self.lease.acquire, deadline):
+            holder = await self.lease.holder_now()
+            raise McsmError(f"map {self.name!r} is served by server {holder} (it holds the "
+                            "map's lease): refusing to serve it a second time (to follow it, "
+                            f"start this server with --standby-of {self.name})")
+        cfg = await self._step("the map's config", self.log.read_config, deadline)
         if cfg is None and self.claim:
             st = self.st
             assert st is not None
             if st.seq > 0:  # a restored map: its stream starts at its seq, from a snapshot
                 blob = self._snapshot_blob(st)
-                await retry("the map's snapshot", lambda: self.log.upload(blob), deadline)
+                await self._step("the map's snapshot", lambda: self.log.upload(blob), deadline)
             mine = self._config_of(st)
-            await retry("the map's log", lambda: self.log.create(
+            await self._step("the map's log", lambda: self.log.create(
                 mine, self.server.opts.id_ttl_s), deadline)
-            cfg = await retry("the map's config", self.log.read_config, deadline)
+            cfg = await self._step("the map's config", self.log.read_config, deadline)
         if cfg is not None:
             self._use_config(cfg)
         if not self.claim:
             return
-        if not await retry("the map's lease", self.lease.acquire, deadline):
-            holder = await self.lease.holder_now()
-            raise McsmError(f"map {self.name!r} is served by server {holder} (it holds the "
-                            "map's lease): refusing to serve it a second time (to follow it, "
-                            f"start this server with --standby-of {self.name})")
-        last = await retry("the log's head", self.log.head, deadline)
+        last = await self._step("the log's head", self.log.head, deadline)
         if self.st is not None and self.st.seq > 0 and self.st.seq != self.base + last:
             await self.lease.release()
             raise McsmError(f"map {self.name!r}: its log holds {last} inputs after seq "
@@ -184,6 +188,14 @@ class Replica:
                             "without --restore (it catches up from the log)")
         if self.st is not None and self.st.seq == 0 and last > 0:
             self.st = None  # a new empty map, but the log has the map: build it from there
+
+    async def _step(self, what: str, make: Callable[[], Awaitable[T]], deadline: float) -> T:
+        """A step of starting (:func:`retry`), then the lease's renewal if it is due (the
+        replica's loop, which renews it later, is not running yet)."""
+        out = await retry(what, make, deadline)
+        if self.lease.holding and time.monotonic() >= self.lease.renew_at:
+            await self.lease.renew()
+        return out
 
     def _config_of(self, st: MapState) -> dict[str, Any]:
         return {"options": st.map.options(), "n_samples": st.n_samples,
