@@ -3,7 +3,8 @@
 
 For each run (its ``partition.json``, written by the test, and its servers' logs): the lease
 TTL, the seconds from the heal to each side's first fresh ack, and every time a server stopped
-being primary (``not serving it any more``) or took over (``took over as primary``), split by
+being primary (``not serving it any more``), took over (``took over as primary``) or refused
+an update with ``NotReplicated`` (its lease not valid, or the log did not take it), split by
 phase: before the cut, during it, after the heal. With the primary's side holding the NATS
 majority nothing forces a change of primary before the cut or during it, unless a leader of
 the lease bucket or the map's stream was on the cut-off node (JetStream then elects another,
@@ -27,7 +28,8 @@ from datetime import datetime
 from pathlib import Path
 
 _LINE = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}) \w+ [\w.]+: (.*)$")
-_EVENTS = {"stops": "not serving it any more", "takeovers": "took over as primary"}
+_EVENTS = {"stops": "not serving it any more", "takeovers": "took over as primary",
+           "refusals": "NotReplicated"}
 
 
 def _events(log: Path) -> list[tuple[float, str]]:
@@ -71,9 +73,9 @@ def main() -> None:
             continue
         keys = [k for k in rows[0] if k not in ("run", "ttl", "heal")]
         print(f"{base}: {len(rows)} runs, lease TTL {rows[0]['ttl']} s")
-        print(f"{'run':24s} {'heal->ack s':>11s} " + " ".join(f"{k:>16s}" for k in keys))
+        print(f"{'run':24s} {'heal->ack s':>11s} " + " ".join(f"{k:>17s}" for k in keys))
         for r in rows:
-            print(f"{r['run']:24s} {r['heal']:11.1f} " + " ".join(f"{r[k]:16d}" for k in keys))
+            print(f"{r['run']:24s} {r['heal']:11.1f} " + " ".join(f"{r[k]:17d}" for k in keys))
         heals = [float(str(r["heal"])) for r in rows]
         print(f"heal -> fresh ack on both sides: median {statistics.median(heals):.1f} s, "
               f"worst {max(heals):.1f} s")

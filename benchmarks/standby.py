@@ -15,8 +15,12 @@ the log (lag <= 2). Then one
 graceful stop (SIGINT: the lease is released): SIGINT -> next ack. Prints median and worst.
 
 All processes on 127.0.0.1; the machine has 2 cores shared by every process here.
+Part 3 (``--steady S``), the lease's false alarms: a primary, two standbys and two clients
+streaming for S seconds with no fault; prints the acks, the changes of primary and the
+updates refused ``NotReplicated`` (each one a stall of the primary longer than 0.75 TTL).
+
 Run: ``.venv/bin/python benchmarks/standby.py [--samples 1000] [--updates 300] [--kills 5]
-[--lease-ttl 2] [--takeover-only]``.
+[--lease-ttl 2] [--takeover-only] [--steady S]``.
 """
 
 from __future__ import annotations
@@ -179,6 +183,47 @@ def part2(n: int, kills: int, tmp: Path, seed: int, ttl: float) -> None:
                   f"worst {max(xs) * 1e3:7.1f} ms")
 
 
+def part3(n: int, seconds: float, tmp: Path, ttl: float) -> None:
+    """No fault: a primary, two standbys and two clients streaming for ``seconds``; every
+    change of primary and every ``NotReplicated`` is then a false alarm of the lease (the
+    primary could not renew in time under the machine's load)."""
+    run = tmp / "steady"
+    run.mkdir()
+    router, ep = _router()
+    log = ["--nats", ",".join(NATS), "--prefix", "steady"]
+    procs: list[ServerProcess] = []
+    stop = threading.Event()
+    counts: list[int] = []
+    try:
+        procs.append(_server(run, "p", n, "--map", "m", "--connect", ep, *log))
+        procs += [_server(run, f"s{k}", n, "--standby-of", "m", "--connect", ep, *log)
+                  for k in (1, 2)]
+        time.sleep(1.0)
+
+        def client(seed: int) -> None:
+            stamps: list[tuple[float, str]] = []
+            _stream(ep, n, 1_000_000, seed, stamps, stop, "steady")
+            counts.append(len(stamps))
+
+        threads = [threading.Thread(target=client, args=(10 + k,), daemon=True)
+                   for k in range(2)]
+        for th in threads:
+            th.start()
+        time.sleep(seconds)
+        stop.set()
+        for th in threads:
+            th.join(timeout=120)
+    finally:
+        for d in procs:
+            d.stop()
+        router.stop()
+    text = "".join(d.log_text() for d in procs)
+    print(f"no fault, {seconds:g} s, primary + 2 standbys, 2 clients, lease TTL {ttl:g} s, "
+          f"N = {n}: {sum(counts)} acks, {text.count('took over as primary')} takeovers, "
+          f"{text.count('not serving it any more')} primaries stopped, "
+          f"{text.count('NotReplicated')} updates refused NotReplicated", flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--samples", type=int, default=1000)
@@ -188,6 +233,9 @@ def main() -> None:
     ap.add_argument("--lease-ttl", type=float, default=2.0,
                     help="every server's --lease-ttl (default 2, mcsm serve's default)")
     ap.add_argument("--takeover-only", action="store_true", help="part 2 only")
+    ap.add_argument("--steady", type=float, default=0.0, metavar="S",
+                    help="then S seconds of two clients streaming with no fault, counting "
+                         "the lease's false alarms (0: skip)")
     args = ap.parse_args()
     from mcsm.natsrun import NatsCluster
 
@@ -197,7 +245,10 @@ def main() -> None:
             NATS[:] = cluster.urls
             if not args.takeover_only:
                 part1(args.samples, args.updates, Path(d))
-            part2(args.samples, args.kills, Path(d), args.seed, args.lease_ttl)
+            if args.kills > 0:
+                part2(args.samples, args.kills, Path(d), args.seed, args.lease_ttl)
+            if args.steady > 0:
+                part3(args.samples, args.steady, Path(d), args.lease_ttl)
 
 
 if __name__ == "__main__":

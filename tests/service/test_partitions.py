@@ -69,28 +69,19 @@ class Sides:
         return "a" if i in self.nats_a else "b"
 
     def start(self) -> None:
-        pending: dict[tuple[int, int], TcpProxy] = {}
-
-        def via(i: int, j: int) -> str:
-            return pending[(i, j)].endpoint
-
-        # one proxy per (dialer, dialled) pair, towards the dialled node's cluster port,
-        # made once the ports are known
-        c = NatsCluster(self.tmp / "nats", route_via=lambda i, j: "127.0.0.1:1")
-        for i in range(3):
-            for j in range(3):
-                if i != j:
-                    pending[(i, j)] = TcpProxy(f"127.0.0.1:{c.nodes[j].cluster_port}")
-        c.route_via = via
-        for i, node in enumerate(c.nodes):
-            node.conf.write_text(c._config(i))
-        self.proxies = pending
-        self.cluster = c
-        with ThreadPoolExecutor(1) as pool:  # the NATS nodes start while the routers do
-            started = pool.submit(c.start)
-            self.ra = start_router(self.tmp)
-            self._start_rb()
-            started.result()
+        # One proxy per (dialer, dialled) pair of NATS nodes, bound first so that the ports
+        # the cluster then picks cannot be one of theirs; each is pointed at the dialled
+        # node's cluster port once the cluster has picked it. The nodes start (and bind
+        # their ports) before the routers pick theirs.
+        self.proxies = {(i, j): TcpProxy("127.0.0.1:1") for i in range(3) for j in range(3)
+                        if i != j}
+        self.cluster = NatsCluster(self.tmp / "nats",
+                                   route_via=lambda i, j: self.proxies[(i, j)].endpoint)
+        for (_, j), proxy in self.proxies.items():
+            proxy.target = ("127.0.0.1", self.cluster.nodes[j].cluster_port)
+        self.cluster.start()
+        self.ra = start_router(self.tmp)
+        self._start_rb()
 
     def _start_rb(self) -> None:
         assert self.ra is not None
