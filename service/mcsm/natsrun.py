@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import os
+import random
 import shutil
 import signal
 import socket
@@ -55,11 +56,39 @@ def nats_server_binary() -> str:
     return found
 
 
-def free_port(host: str = "127.0.0.1") -> int:
-    """A TCP port nothing listens on now (the kernel's choice)."""
-    with socket.socket() as s:
-        s.bind((host, 0))
-        return int(s.getsockname()[1])
+def free_port(host: str = "127.0.0.1", taken: set[int] | None = None) -> int:
+    """A TCP port nothing listens on now and not in ``taken``. Where the kernel says which
+    ports it hands out to outgoing connections (Linux: ``ip_local_port_range``), one below
+    that range: a port from it can be taken by any process's outgoing connection between
+    this choice and the node's bind (it happened in the partition tests). Elsewhere, the
+    kernel's choice."""
+    low = _ephemeral_low()
+    if low is not None and low > 12_000:
+        rng = random.SystemRandom()
+        for _ in range(200):
+            port = rng.randrange(10_000, low)
+            if taken is not None and port in taken:
+                continue
+            with socket.socket() as s:
+                try:
+                    s.bind((host, port))
+                except OSError:
+                    continue
+            return port
+    for _ in range(100):
+        with socket.socket() as s:
+            s.bind((host, 0))
+            port = int(s.getsockname()[1])
+        if taken is None or port not in taken:
+            return port
+    raise OSError("no free port")
+
+
+def _ephemeral_low() -> int | None:
+    try:
+        return int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return None
 
 
 @dataclass
@@ -110,11 +139,18 @@ class NatsCluster:
     def __post_init__(self) -> None:
         self.workdir = Path(self.workdir)
         self.workdir.mkdir(parents=True, exist_ok=True)
-        ports = self.ports or [free_port(self.host) for _ in range(self.n)]
+        taken: set[int] = set(self.ports or [])
+
+        def pick() -> int:
+            port = free_port(self.host, taken)
+            taken.add(port)
+            return port
+
+        ports = self.ports or [pick() for _ in range(self.n)]
         for i in range(self.n):
             name = f"n{i + 1}"
             self.nodes.append(NatsNode(
-                name, self.host, ports[i], free_port(self.host), free_port(self.host),
+                name, self.host, ports[i], pick(), pick(),
                 self.workdir / name, self.workdir / f"{name}.conf",
                 self.workdir / f"{name}.log"))
         for i, node in enumerate(self.nodes):
