@@ -26,16 +26,23 @@ class BuildKernel(build_ext):
             super().run()
         except Exception as exc:  # one clear line, then fail the install
             sys.stderr.write(
-                f"\nmcsm: building the compiled kernel (service/mcsm/core/_kernel.c) failed: "
+                f"\nmcsm: building the compiled kernel (service/mcsm/core/_*.c) failed: "
                 f"{type(exc).__name__}: {exc}. mcsm needs a C compiler (gcc or clang) and the "
                 f"Python headers at install time (Debian: apt-get install gcc python3-dev).\n")
             raise
 
 
-SOURCE = ["service/mcsm/core/_kernel.c"]
-KERNELS = [Extension("mcsm.core._kernel", SOURCE, extra_compile_args=KERNEL_FLAGS)]
+# _kernel.c: the map's updates; _relin*.c: relinearisation (the same flags, linked into the
+# same libraries).
+SOURCE = ["service/mcsm/core/_kernel.c", "service/mcsm/core/_relin.c",
+          "service/mcsm/core/_relin_order.c", "service/mcsm/core/_relin_chol.c",
+          "service/mcsm/core/_relin_draw.c"]
+# the per-sample and per-frame arithmetic shared with the device kernel (_kernel_cuda.cu)
+DEPENDS = ["service/mcsm/core/kernel_common.h", "service/mcsm/core/_relin.h"]
+KERNELS = [Extension("mcsm.core._kernel", SOURCE, depends=DEPENDS,
+                     extra_compile_args=KERNEL_FLAGS)]
 if platform.machine().lower() in ("x86_64", "amd64"):
-    KERNELS.append(Extension("mcsm.core._kernel_avx2", SOURCE,
+    KERNELS.append(Extension("mcsm.core._kernel_avx2", SOURCE, depends=DEPENDS,
                              extra_compile_args=[*KERNEL_FLAGS, "-mavx2"]))
 
 setup(ext_modules=KERNELS, cmdclass={"build_ext": BuildKernel})

@@ -82,6 +82,8 @@ STEPS = [
     Step("service_throughput", "benchmarks/service_throughput.py", (), 80.0, True),
     Step("bench_oracle", "benchmarks/bench_oracle.py", ("--seeds", "2", "--sizes", "200", "1000"),
          60.0),
+    Step("soak_memory", "benchmarks/soak_memory.py",
+         ("--ops", "20000", "--every", "5000", "--samples", "200"), 90.0),
     Step("consistency", "experiments/consistency.py",
          ("--quick", "--iterations", "360", "--n-samples", "200", "--results",
           str(QUICK / "consistency")), 170.0, verdict_exit=True),

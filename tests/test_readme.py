@@ -65,3 +65,39 @@ def test_readme_states_the_gate_default() -> None:
     assert build_parser().parse_args(["serve"]).gate == DEFAULT_GATE
     assert build_parser().parse_args(["serve", "--gate", "none"]).gate is None
     assert new_map(ServerOptions().map_options).gate == DEFAULT_GATE
+
+
+def test_readme_lists_every_exit_code() -> None:
+    """Each exit code of ``mcsm`` and ``mcsm-client`` is in the README's lists, with 7."""
+    from mcsm import cli
+    from mcsm_client import cli as client_cli
+
+    text = " ".join(README.read_text().split())
+    ours = text.split("Exit codes of `mcsm`:")[1].split("Of `mcsm-client`:")[0]
+    theirs = text.split("Of `mcsm-client`:")[1].split(". ")[0:8]
+    codes = {v for k, v in vars(cli).items() if k.startswith("EXIT_") and isinstance(v, int)}
+    assert codes == set(range(8))
+    for code in sorted(codes):
+        assert re.search(rf"(^|[ ,]){code} ", ours), f"mcsm exit code {code} missing"
+    client = {v for k, v in vars(client_cli).items()
+              if k.startswith("EXIT_") and isinstance(v, int)}
+    assert client == {0, 1, 2, 3, 4, 130}
+    for code in sorted(client):
+        assert re.search(rf"(^|[ ,]){code} ", " ".join(theirs)), f"client code {code} missing"
+
+
+def test_first_make_shows_progress_while_the_venv_is_built(tmp_path: Path) -> None:
+    """The recipe that builds ``.venv`` says what it does before each long step (it was silent
+    for about 53 s); ``make -n`` prints the recipe without running it."""
+    root = README.parent
+    r = subprocess.run(["make", "-n", "-B", "-C", str(root), ".venv/.installed-stamp"],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    out = r.stdout
+    steps = ["setting up .venv", "[1/4] creating .venv", "[2/4] upgrading pip",
+             "[3/4] installing mcsm", "[4/4] building tf2_msgs", ".venv is ready"]
+    where = [out.find(s) for s in steps]
+    assert all(w >= 0 for w in where) and where == sorted(where), out
+    assert out.find("[3/4]") < out.find("pip install --progress-bar off -e") < \
+        out.find("[4/4]")
+    assert "--quiet -e" not in out  # pip's own lines (Collecting ...) are shown

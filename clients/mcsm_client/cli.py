@@ -12,6 +12,7 @@ Commands (each takes the connection flags ``--connect``, ``--map``, ``--prefix``
     mcsm-client remove FRAME
     mcsm-client watch [--count K] [--duration-s S]
     mcsm-client play FILE|gtsam:NAME [--bounded] [--order file|pose] [--max-constraints K]
+    mcsm-client play-rosbag BAG [--constraint-topic T] [--landmark-topic T] [--odometry-topic T]
     mcsm-client sim [--iterations 340] [--sigma-theta-deg 0] [--csv F] [--png F]
     mcsm-client multirobot [--connect-b ENDPOINT | --map-b NAME]
 
@@ -20,8 +21,9 @@ in-process map of N samples); they write only into a frame namespace that has no
 (``--namespace NS``: frames ``NS/...``). ``--cov`` gives a full covariance (row-major) instead
 of ``--sigma``. Exit codes: 0 success, 1 the server refused the request (its error is
 printed), 2 bad command line or input file (a malformed ``--connect`` too), 3 no answer within
-``--timeout-s`` (no live server, no permitted server for the key, or a slow server: the
-message says which), 130 interrupted.
+``--timeout-s`` (nothing to connect to, no live server, no permitted server for the key, or a
+slow server: the message says which), 4 ``update`` of a constraint the server's gate rejected
+(recorded and acknowledged, the map unchanged; the verdict says why), 130 interrupted.
 """
 
 from __future__ import annotations
@@ -42,9 +44,10 @@ from mcsm.connect import (
     client_kwargs,
     fill_connection_defaults,
 )
-from mcsm.errors import McsmError, NoPermittedServer, NoServer, Timeout
+from mcsm.errors import McsmError, NoPermittedServer, NoServer, Timeout, Unreachable
 
 EXIT_OK, EXIT_REFUSED, EXIT_USAGE, EXIT_TIMEOUT, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
+EXIT_GATE_REJECTED = 4  # update: recorded and acknowledged, but the gate refused it
 
 
 class UsageError(Exception):
@@ -69,7 +72,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="mcsm-client",
         description="Client of the Monte Carlo stochastic map server (mcsm serve).",
         epilog="Exit codes: 0 ok, 1 refused by the server, 2 usage or input error, "
-               "3 no answer in time (no server, access denied, or slow), 130 interrupted. "
+               "3 no answer in time (nothing to connect to, no server, access denied, or "
+               "slow), 4 update rejected by the server's loop-closure gate (recorded, map "
+               "unchanged), 130 interrupted. "
                "Connection flags go before or after the command.")
     _add_common(p)
     p.add_argument("--version", action="version", version=_version_text())
@@ -110,6 +115,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("b")
     s.add_argument("--samples-out", type=Path, default=None, metavar="FILE.npy",
                    help="also save the (N, 7) samples as a .npy file")
+    s.add_argument("--force", action="store_true", help="overwrite an existing --samples-out")
     s.add_argument("--json", action="store_true")
     _add_common(s)
 
@@ -126,6 +132,14 @@ def build_parser() -> argparse.ArgumentParser:
         s.add_argument("request_id", help="the update's request id (from its ack or events)")
         s.add_argument("--json", action="store_true")
         _add_common(s)
+
+    s = sub.add_parser("relinearize", help="bring a component (or every component) back to the "
+                       "maximum a posteriori estimate of its recorded inputs and redraw its "
+                       "samples (admin)")
+    s.add_argument("frame", nargs="?", default="",
+                   help="a frame of the component (default: every component)")
+    s.add_argument("--json", action="store_true")
+    _add_common(s)
 
     s = sub.add_parser("audit", help="run GTSAM's GNC over a map's recorded inputs and retract "
                        "or reinstate where it disagrees with the map (eval extra)",
@@ -180,6 +194,28 @@ def build_parser() -> argparse.ArgumentParser:
     _add_in_process(s)
     _add_common(s)
 
+    s = sub.add_parser("play-rosbag", help="stream a ROS 2 bag (MCAP or sqlite3) into the map, "
+                       "mapped as mcsm ros2 maps messages (ros extra: rosbags)",
+                       description="Read a ROS 2 bag with rosbags (no ROS installation "
+                                   "needed) and send its nav_msgs/Odometry messages of the "
+                                   "input topics as mcsm ros2 would: in header-stamp order, "
+                                   "samples and request ids from each message (a bag played "
+                                   "twice is applied once). docs/ros2.md.")
+    s.add_argument("bag", type=Path, help="the bag (its folder, or one .mcap/.db3 file)")
+    s.add_argument("--odometry-topic", action="append", default=None, metavar="TOPIC",
+                   help="a cumulative odometry topic, keyframed (repeatable; default /odom)")
+    s.add_argument("--constraint-topic", action="append", default=None, metavar="TOPIC",
+                   help="a relative-pose topic (repeatable; default /mcsm/constraints)")
+    s.add_argument("--landmark-topic", action="append", default=None, metavar="TOPIC",
+                   help="a point-landmark topic (repeatable; default /mcsm/landmarks)")
+    s.add_argument("--frame-prefix", default="", metavar="NS",
+                   help="prepended to every frame id (NS/base_link)")
+    s.add_argument("--keyframe-distance-m", type=float, default=0.5)
+    s.add_argument("--keyframe-angle-rad", type=float, default=0.5)
+    s.add_argument("--no-progress", action="store_true")
+    s.add_argument("--json", action="store_true", help="print the summary as JSON")
+    _add_common(s)
+
     s = sub.add_parser("sim", help="the paper's §6 simulation: RMS and NEES vs ground truth")
     s.add_argument("--iterations", type=int, default=340, help="odometry steps (340: one lap)")
     s.add_argument("--sigma-theta-deg", type=float, default=0.0,
@@ -189,6 +225,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--unbounded", action="store_true", help="keep every pose frame")
     s.add_argument("--csv", type=Path, default=None, help="write per-iteration scores here")
     s.add_argument("--png", type=Path, default=None, help="plot here (needs matplotlib)")
+    s.add_argument("--force", action="store_true", help="overwrite existing --csv/--png files")
     s.add_argument("--json", action="store_true")
     _add_in_process(s)
     _add_common(s)
@@ -245,10 +282,12 @@ def _jsonable(x: Any) -> Any:
 
 
 def _ack_dict(ack: Any) -> dict[str, Any]:
-    return {"seq": ack.seq, "op": ack.op, "kind": ack.kind, "component": ack.component,
+    return {"request_id": ack.request_id, "seq": ack.seq, "op": ack.op, "kind": ack.kind,
+            "component": ack.component,
             "frames_added": list(ack.frames_added), "frames_removed": list(ack.frames_removed),
             "duplicate": ack.duplicate,
-            "verdict": ack.verdict.to_dict() if ack.verdict is not None else None}
+            "verdict": ack.verdict.to_dict() if ack.verdict is not None else None,
+            "relin": ack.relin}
 
 
 def _ack_text(ack: Any) -> str:
@@ -266,7 +305,13 @@ def _ack_text(ack: Any) -> str:
             extra += f" [{v.reason}]"
     elif v is not None and v.status in ("pending", "rejected"):  # held or refused by deferral
         extra += f" verdict={v.status} [{v.reason}]"
-    return f"ok seq={ack.seq} {ack.kind} component={ack.component}{extra}"
+    comp = f" component={ack.component}" if ack.component is not None else ""
+    return f"ok seq={ack.seq} id={ack.request_id} {ack.kind}{comp}{extra}"
+
+
+def _count(n: int, noun: str) -> str:
+    """``1 frame``, ``2 frames``."""
+    return f"{n} {noun}{'' if n == 1 else 's'}"
 
 
 def _version_text() -> str:
@@ -278,10 +323,13 @@ def _version_text() -> str:
             f"protocol v{VERSION})")
 
 
-def _check_output(path: Path | None, flag: str) -> None:
-    """Refuse an output file that cannot be written, before any long run starts."""
+def _check_output(path: Path | None, flag: str, force: bool = False) -> None:
+    """Refuse an output file that cannot be written, or that exists without ``--force`` (as
+    every writer of ``mcsm`` and ``mcsm-client`` does), before any long run starts."""
     if path is None:
         return
+    if path.is_file() and not force:
+        raise UsageError(f"{flag} {path}: exists (--force overwrites it)")
     parent = path.parent if str(path.parent) else Path(".")
     if path.is_dir():
         raise UsageError(f"{flag} {path}: is a directory")
@@ -337,18 +385,25 @@ def cmd_info(args: argparse.Namespace) -> int:
     obj = {"map": info.map, "n_samples": info.n_samples, "options": info.options,
            "seq": info.seq, "digest": info.digest, "n_frames": info.n_frames,
            "components": {k: list(v) for k, v in info.components.items()},
-           "rejected": info.rejected, "server_id": info.server_id,
+           "rejected": info.rejected, "requests_with_error": info.rejected,
+           "errors": dict(info.rejected_by_error), "server_id": info.server_id,
            "recording": info.recording, "verdicts": dict(info.verdicts), "role": info.role,
            "standbys": dict(info.standbys), "replicas": info.replicas, "epoch": info.epoch}
-    comps = ", ".join(f"{root} ({len(frames)} frames)" for root, frames in
+    comps = ", ".join(f"{root} ({_count(len(frames), 'frame')})" for root, frames in
                       list(info.components.items())[:10])
-    more = " ..." if len(info.components) > 10 else ""
-    text = (f"map {info.map!r}: N={info.n_samples}, {info.n_frames} frames in "
-            f"{len(info.components)} components{': ' + comps + more if comps else ''}\n"
+    more = f" ... ({len(info.components) - 10} more)" if len(info.components) > 10 else ""
+    refused = ", ".join(f"{k} {v}" for k, v in sorted(info.rejected_by_error.items()))
+    text = (f"map {info.map!r}: N={info.n_samples}, {_count(info.n_frames, 'frame')} in "
+            f"{_count(len(info.components), 'component')}"
+            f"{': ' + comps + more if comps else ''}\n"
             f"seq {info.seq}, digest {info.digest}\n"
-            f"rejected inputs {info.rejected}; recording {info.recording or '-'}")
+            f"requests answered with an error (any kind, queries too): {info.rejected}"
+            f"{f' ({refused})' if refused else ''}; recording {info.recording or '-'}")
     if info.verdicts:
-        text += "\nverdicts: " + ", ".join(f"{k} {v}" for k, v in sorted(info.verdicts.items()))
+        text += "\nupdates by verdict: " + ", ".join(
+            f"{k} {v}" for k, v in sorted(info.verdicts.items())) + (
+            " (rejected: refused by the gate, recorded, map unchanged)"
+            if info.verdicts.get("rejected") else "")
     text += f"\nserver {info.server_id} ({info.role})"
     if info.replicas:
         lag = ", ".join(f"{z} lag {info.seq - s}" for z, s in sorted(info.standbys.items()))
@@ -386,11 +441,19 @@ def cmd_update(args: argparse.Namespace) -> int:
         except ValueError as exc:
             raise UsageError(str(exc)) from None
     _print(args, _ack_dict(ack), _ack_text(ack))
+    if ack.verdict is not None and ack.verdict.status == "rejected":
+        return EXIT_GATE_REJECTED  # the map is unchanged: a script must see it in $?
     return EXIT_OK
 
 
 def cmd_query(args: argparse.Namespace) -> int:
     """``query``: print the marginal of A->B; optionally save its samples."""
+    if args.samples_out is not None:
+        if not str(args.samples_out).endswith(".npy"):
+            args.samples_out = Path(f"{args.samples_out}.npy")  # what np.save writes
+        if args.samples_out.exists() and not args.force:
+            raise UsageError(f"--samples-out {args.samples_out}: exists (--force overwrites "
+                             "it)")
     with _client(args) as c:
         mean, cov = c.marginal(args.a, args.b)
         if args.samples_out is not None:
@@ -422,8 +485,24 @@ def cmd_retract(args: argparse.Namespace) -> int:
     with _client(args) as c:
         fn = c.retract if args.command == "retract" else c.reinstate
         ack = fn(args.request_id)
-    _print(args, _ack_dict(ack), _ack_text(ack) + f" target={args.request_id}"
-           + (f" verdict={ack.verdict.status}" if ack.verdict is not None else ""))
+    verdict = (f" verdict={ack.verdict.status}" if ack.verdict is not None
+               and f"verdict={ack.verdict.status}" not in _ack_text(ack) else "")
+    _print(args, _ack_dict(ack), f"{_ack_text(ack)} target={args.request_id}{verdict}")
+    return EXIT_OK
+
+
+def cmd_relinearize(args: argparse.Namespace) -> int:
+    """``relinearize``: one component (or every one) back to its maximum a posteriori estimate."""
+    with _client(args) as c:
+        ack = c.relinearize(args.frame)
+    rel = ack.relin or {}
+    parts = [f"{d['root']}: " + (f"skipped ({d['skipped']})" if d["skipped"] else
+                                 f"{d['frames']} frames, {d['variables']} variables, "
+                                 f"{d['factors']} factors, {d['iterations']} iterations, "
+                                 f"cost {d['cost_before']:.6g} -> {d['cost_after']:.6g}")
+             for d in rel.get("components", [])]
+    _print(args, _ack_dict(ack), _ack_text(ack) + f" time={rel.get('time_s', 0.0):.3f}s; "
+           + ("; ".join(parts) or "no component"))
     return EXIT_OK
 
 
@@ -541,11 +620,17 @@ def cmd_watch(args: argparse.Namespace) -> int:
             if ev is None:
                 continue
             seen += 1
+            v = ev.extra.get("verdict") if isinstance(ev.extra, dict) else None
+            status = v.get("status") if isinstance(v, dict) else None
             obj = {"seq": ev.seq, "op": ev.op, "kind": ev.kind, "frames": list(ev.frames),
-                   "component": ev.component, "time_ns": ev.time_ns, "digest": ev.digest}
+                   "component": ev.component, "time_ns": ev.time_ns, "digest": ev.digest,
+                   "request_id": ev.request_id, "verdict": v}
             digest = f" digest={ev.digest[:16]}" if ev.digest else ""
+            comp = f" component={ev.component}" if ev.component is not None else ""
+            shown = f" verdict={status}" if status and status != ev.kind else ""
             _print(args, obj, f"seq {ev.seq:6d} {ev.op:<8} {ev.kind:<14} "
-                              f"{','.join(ev.frames):<24} component={ev.component}{digest}")
+                              f"{','.join(ev.frames):<24} id={ev.request_id or '-'}"
+                              f"{shown}{comp}{digest}")
     return EXIT_OK
 
 
@@ -620,14 +705,41 @@ def cmd_play(args: argparse.Namespace) -> int:
     return EXIT_REFUSED if stats.rejected else EXIT_OK
 
 
+def cmd_play_rosbag(args: argparse.Namespace) -> int:
+    """``play-rosbag``: a ROS 2 bag through the node's mapping; exit 1 if anything was refused
+    or rejected, or a message was invalid."""
+    if importlib.util.find_spec("rosbags") is None:
+        raise UsageError("play-rosbag needs rosbags: pip install 'mcsm[ros]'")
+    from mcsm_client.ros2.bag import BagError, play_rosbag
+    from mcsm_client.ros2.mapping import MappingOptions
+
+    d = MappingOptions()
+    opts = MappingOptions(
+        odometry_topics=tuple(args.odometry_topic or d.odometry_topics),
+        constraint_topics=tuple(args.constraint_topic or d.constraint_topics),
+        landmark_topics=tuple(args.landmark_topic or d.landmark_topics),
+        frame_prefix=args.frame_prefix, keyframe_distance_m=args.keyframe_distance_m,
+        keyframe_angle_rad=args.keyframe_angle_rad)
+    bar = _Progress("play-rosbag", not args.no_progress)
+    try:
+        with _client(args) as c:
+            stats = play_rosbag(args.bag, c, opts, progress=bar)
+    except BagError as exc:
+        raise UsageError(str(exc)) from None
+    text = stats.summary() + (f"\nfirst problem: {stats.first_error}" if stats.first_error
+                              else "")
+    _print(args, {"bag": str(args.bag), **stats.as_dict()}, text)
+    return EXIT_REFUSED if (stats.rejected or stats.n_refused or stats.invalid) else EXIT_OK
+
+
 def cmd_sim(args: argparse.Namespace) -> int:
     """``sim``: the paper's §6 simulation with per-iteration scores."""
     from mcsm_client.sim import SimConfig, plot_results, run_sim
 
     if args.iterations < 1 or args.score_every < 1 or args.landmarks < 1:
         raise UsageError("--iterations, --score-every and --landmarks must be >= 1")
-    _check_output(args.csv, "--csv")  # before the run, not after it
-    _check_output(args.png, "--png")
+    _check_output(args.csv, "--csv", args.force)  # before the run, not after it
+    _check_output(args.png, "--png", args.force)
     if args.png is not None and importlib.util.find_spec("matplotlib") is None:
         raise UsageError("--png needs matplotlib (pip install -e '.[eval]')")
     cfg = SimConfig(n_iterations=args.iterations, sigma_theta_deg=args.sigma_theta_deg,
@@ -704,8 +816,10 @@ def cmd_multirobot(args: argparse.Namespace) -> int:
 
 COMMANDS = {"info": cmd_info, "update": cmd_update, "query": cmd_query, "remove": cmd_remove,
             "retract": cmd_retract, "reinstate": cmd_retract, "verdict": cmd_verdict,
+            "relinearize": cmd_relinearize,
             "servers": cmd_servers, "audit": cmd_audit,
-            "watch": cmd_watch, "play": cmd_play, "sim": cmd_sim, "multirobot": cmd_multirobot}
+            "watch": cmd_watch, "play": cmd_play, "play-rosbag": cmd_play_rosbag, "sim": cmd_sim,
+            "multirobot": cmd_multirobot}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -727,7 +841,7 @@ def main(argv: list[str] | None = None) -> int:
     except UsageError as exc:
         print(f"{prog}: {exc}", file=sys.stderr)
         return EXIT_USAGE
-    except (NoServer, NoPermittedServer) as exc:
+    except (NoServer, NoPermittedServer, Unreachable) as exc:
         print(f"{prog}: {exc.message}", file=sys.stderr)
         return EXIT_TIMEOUT
     except Timeout as exc:

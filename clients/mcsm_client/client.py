@@ -40,6 +40,7 @@ Example::
 from __future__ import annotations
 
 import itertools
+import json
 import logging
 import queue
 import threading
@@ -60,6 +61,7 @@ from mcsm.errors import (
     NoPermittedServer,
     NoServer,
     Timeout,
+    Unreachable,
 )
 
 log = logging.getLogger(__name__)
@@ -71,6 +73,14 @@ BACKOFF_FIRST_S = 0.05
 BACKOFF_MAX_S = 1.0
 MIN_ATTEMPT_S = 0.02
 """An attempt with less time left than this is not started (the call ends)."""
+
+
+def _connect_timeout_s(conf: zenoh.Config) -> float:
+    """Zenoh's ``connect/timeout_ms`` of a config, in seconds (how long ``zenoh.open`` tried)."""
+    try:
+        return float(json.loads(conf.get_json("connect/timeout_ms"))) / 1000.0
+    except (zenoh.ZError, ValueError, TypeError):
+        return float("nan")
 
 
 class MapClient:
@@ -108,8 +118,8 @@ class MapClient:
 
     Raises
     ------
-    Timeout
-        If no server could be reached while opening the session.
+    Unreachable
+        If the Zenoh session could not connect to any endpoint (a :class:`Timeout`).
     """
 
     def __init__(self, map: str = wire.DEFAULT_MAP, connect: str | None = None,
@@ -132,8 +142,8 @@ class MapClient:
             self.session = zenoh.open(conf)
         except zenoh.ZError as exc:
             why = str(exc).split(" at /", 1)[0]  # drop zenoh's source location
-            raise Timeout(f"connect to {connect or 'the configured endpoints'} ({why})",
-                          self.timeout_s) from None
+            raise Unreachable(connect or "the configured endpoints",
+                              _connect_timeout_s(conf), f"Zenoh: {why}") from None
         self.sender = sender if sender is not None else str(self.session.zid())
         self._id_base = uuid.uuid4().hex[:16]
         self._counter = itertools.count(1)
@@ -358,7 +368,9 @@ class MapClient:
     def update(self, a: str, b: str, samples: npt.ArrayLike, *,
                request_id: str | None = None, timeout_s: float | None = None,
                trusted: bool = False, stamp_ns: int | None = None) -> wire.Ack:
-        """Apply the AT ``a -> b`` given as samples ``(N, 7)`` (``x y z qw qx qy qz``).
+        """Apply the AT ``a -> b`` given as samples ``(N, 7)`` (``x y z qw qx qy qz``), or, given
+        ``(N, 3)`` samples, the point frame ``b`` seen from ``a`` (as :meth:`update_point` and
+        ``StochasticMap.update`` do).
 
         Returns the server's :class:`mcsm.wire.Ack` (sequence number, kind: ``new_component``,
         ``new_frame``, ``join``, ``loop_closure`` or ``rejected``, component root, frames
@@ -375,8 +387,9 @@ class MapClient:
             again with the same ``request_id`` is safe).
         """
         arr = np.asarray(samples, dtype=np.float64)
-        if arr.ndim != 2 or arr.shape[1] != 7:
-            raise BadMessage("samples", "shape (N, 7)", arr.shape)
+        if arr.ndim != 2 or arr.shape[1] not in (7, 3):
+            raise BadMessage("samples", "shape (N, 7) for an AT, or (N, 3) for a point "
+                             "(update_point)", arr.shape)
         return self._update(a, b, arr, request_id, timeout_s, trusted, stamp_ns)
 
     def update_point(self, a: str, b: str, samples3: npt.ArrayLike, *,
@@ -420,6 +433,18 @@ class MapClient:
         applied, gate bypassed)."""
         ack: wire.Ack = self._request("reinstate", f"reinstate {target}", timeout_s, request_id,
                                       target, sender=self.sender)
+        return ack
+
+    def relinearize(self, frame: str = "", *, request_id: str | None = None,
+                    timeout_s: float | None = None) -> wire.Ack:
+        """Relinearise ``frame``'s component (empty: every component): the map solves for the
+        maximum a posteriori estimate of every input it recorded and redraws the component's
+        samples from the posterior. Recorded and acknowledged like an update; ``ack.relin``
+        says what it did (per component: frames, variables, factors, iterations, cost before
+        and after, or why it was skipped; the time it held the worker). Admin only under the
+        shipped access control."""
+        ack: wire.Ack = self._request("relinearize", f"relinearize {frame or 'all'}", timeout_s,
+                                      request_id, frame, sender=self.sender)
         return ack
 
     def verdict(self, target: str, *, timeout_s: float | None = None) -> wire.Verdict | None:

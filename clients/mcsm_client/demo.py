@@ -12,7 +12,7 @@ What it does, all on loopback (no network, no second machine):
 4. stops the servers with SIGINT (their recordings are closed cleanly; ``mcsm replay`` checks
    them), replays the simulation's recording once and writes a picture of its final map,
    ``map.png`` (``mcsm plot``, with the ground truth from ``truth.csv``), and ``scene.mcap``,
-   the map over time for the Foxglove app (``mcsm export-foxglove``; needs the ``viz`` extra);
+   the map over time for the Foxglove app (``mcsm export foxglove``; needs the ``viz`` extra);
 5. prints an accuracy summary and where the files are.
 
 Run ``python -m mcsm_client.demo --help`` for the knobs (N, iterations, seed, output folder).
@@ -173,7 +173,7 @@ def _truth_rows(scenario: Any, k: int) -> list[tuple[str, float, float]]:
 
 def draw_map(record: Path, out: Path, *, truth: list[tuple[str, float, float]] | None = None,
              every: int = 50, log: Any = print) -> list[Path]:
-    """``scene.mcap`` (``mcsm export-foxglove``) and ``map.png`` (``mcsm plot``) of the map
+    """``scene.mcap`` (``mcsm export foxglove``) and ``map.png`` (``mcsm plot``) of the map
     ``default`` of ``record``, from one replay; ``truth.csv`` beside them when ``truth`` is
     given. Without the ``viz`` extra it says so and returns no files."""
     from mcsm.errors import McsmError

@@ -4,23 +4,33 @@
 
     mcsm serve [--listen tcp/127.0.0.1:7457] [--map NAME]... [--samples N]
                [--method joint|paper] [--gate Q|none] [--gate-defer [K]]
+               [--gate-scale W:T:S|none] [--history BYTES|none] [--relinearize-nis Q|none]
+               [--relinearize-every K|none] [--relinearize-gap K] [--relinearize-regate K|none]
                [--record PATH.mcap] [--restore PATH.mcap] [--zenoh-config FILE]
                [--connect ENDPOINT]... [--nats URL]... [--standby-of MAP]...
     mcsm router --listen ENDPOINT
     mcsm nats-cluster --dir DIR [--port 4222] [--nodes 3] [--auth FILE]
-    mcsm replay FILE.mcap [--json]
-    mcsm inspect FILE.mcap [--json]
-    mcsm recover IN.mcap -o OUT.mcap
-    mcsm cat FILE.mcap [--json] [--samples]
+    mcsm replay FILE.mcap... [--json]
+    mcsm inspect FILE.mcap... [--json]
+    mcsm recover IN.mcap... -o OUT.mcap|OUT_DIR
+    mcsm cat FILE.mcap... [--json] [--samples]
     mcsm plot FILE.mcap -o map.png [--map NAME] [--at SEQ] [--samples] [--truth CSV]
               [--view auto|top|xz|yz|3d]
-    mcsm export-foxglove FILE.mcap -o scene.mcap [--every K] [--map NAME]
-    mcsm view [--connect ENDPOINT] [--map NAME] [--foxglove-port P]
+    mcsm export foxglove|g2o|tum FILE.mcap [-o OUT] [--map NAME] [--force] (export-foxglove:
+                                  the same as export foxglove)
+    mcsm view [--connect ENDPOINT] [--map NAME] [--foxglove-port P]   (mcsm_client's, through
+                                  the entry-point group mcsm.commands)
+    mcsm export-rosbag FILE.mcap -o BAG [--map NAME] [--at SEQ]          (ros extra)
+    mcsm ros2 [--connect ENDPOINT | --serve] [--ros-args ...]            (ros extra)
     mcsm --version
 
 ``serve`` prints one line ``listening on <endpoint>`` on stdout when it is ready, and closes
 the recording cleanly on SIGINT or SIGTERM. Exit codes: see :data:`EXIT_CODES_HELP` (also in
 ``mcsm --help`` and docs/recordings.md).
+
+A split recording (``serve --split-size`` / ``--split-duration``) is read by naming its files:
+several paths, a directory or a glob pattern (:mod:`mcsm.recset`); a gap or a mixed set is a
+usage error (2).
 """
 
 from __future__ import annotations
@@ -37,7 +47,8 @@ from pathlib import Path
 from typing import Any
 
 from mcsm import ops, wire
-from mcsm.core.smap import DEFAULT_GATE
+from mcsm.core.relinearize import DEFAULT_HISTORY_BYTES, Policy
+from mcsm.core.smap import DEFAULT_GATE, DEFAULT_GATE_SCALE, DEFAULT_POLICY
 from mcsm.deferral import DEFAULT_EXPIRY, DeferOptions
 from mcsm.errors import McsmError
 
@@ -56,7 +67,7 @@ EXIT_CODES_HELP = """exit codes:
   0  success (replay: every checkpoint matches and the file is complete)
   1  replay diverged (a digest, a sequence number or an input does not match)
   2  usage error: bad arguments, missing or unreadable file, not an mcsm recording,
-     output path exists or is not writable
+     output path exists or is not writable, a split recording with a gap or mixed files
   3  serve: the recording could not be written (serving stopped)
   4  the recording is cut (no clean close): inspect/replay used every complete record
   5  the recording is damaged (CRC mismatch or undecodable record): read up to the damage
@@ -85,7 +96,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     so = ServerOptions()
     mo = StochasticMap(2).options()
-    s = sub.add_parser("serve", help="run the map server (embedded Zenoh peer)")
+    s = sub.add_parser("serve", help="run the map server (embedded Zenoh peer)",
+                       description=_para("Run the map server: an embedded Zenoh peer that "
+                                         "serves maps, applies updates in one order, records "
+                                         "every input to MCAP before it acknowledges it, and "
+                                         "answers queries. Prints 'listening on ENDPOINT' "
+                                         "when ready; SIGINT/SIGTERM close the recording."),
+                       epilog=EXIT_CODES_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_connection_args(s, role="server")
     s.add_argument("--connect", action="append", default=None, metavar="ENDPOINT",
                    help="join a Zenoh router (repeatable; mcsm router): clients then find "
@@ -93,7 +110,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "--listen the server listens nowhere itself")
 
     rt = sub.add_parser("router", help="run a Zenoh router that servers and clients join "
-                        "(several servers, one key space)")
+                        "(several servers, one key space)",
+                        description="Run a Zenoh router (no map of its own) that map servers "
+                                    "(mcsm serve --connect) and clients join: several servers, "
+                                    "one key space (docs/fleet.md).")
     rt.add_argument("--listen", required=True, metavar="ENDPOINT",
                     help="endpoint to listen on, e.g. tcp/0.0.0.0:7447")
     rt.add_argument("--zenoh-config", default=None, metavar="FILE",
@@ -128,23 +148,65 @@ def build_parser() -> argparse.ArgumentParser:
                         f"and the ack's verdict says why (default {DEFAULT_GATE}: one wrong "
                         "closure wrecks a map, see docs/outliers.md; 'none' turns it off; a "
                         "request marked trusted bypasses it)")
+    s.add_argument("--device", default="cpu", metavar="cpu|cuda|cuda:K",
+                   help="where the maps keep their edges: 'cpu' (default) or 'cuda' (a GPU: "
+                        "the passes that grow with the map run there, same digests as on a "
+                        "CPU; needs the 'gpu' extra, CuPy; docs/kernel.md)")
     s.add_argument("--gate-defer", type=_defer, nargs="?", const=DEFAULT_EXPIRY, default=None,
                    metavar="K",
                    help="hold the first loop closure of a revisit as 'pending' until a second "
                         "one agrees with it through the map's joint samples, then apply both; "
                         f"after K updates (default {DEFAULT_EXPIRY}) it goes through the gate "
                         "alone (default off; docs/outliers.md)")
+    gs = DEFAULT_GATE_SCALE
+    s.add_argument("--gate-scale", type=_gate_scale, default=gs, metavar="W:T:S|none",
+                   help="scale the gate's threshold by m / T clipped to [1, S], m the median "
+                        "over the last W gated closures of their NIS over the chi-square "
+                        f"median (default {gs['window']}:{gs['open']:g}:{gs['max']:g}, "
+                        "docs/design.md 'Relinearisation'; 'none': a fixed threshold)")
+    s.add_argument("--history", type=_history, default=DEFAULT_HISTORY_BYTES,
+                   metavar="BYTES|none",
+                   help="bound of each map's record of its inputs, from which it relinearises "
+                        "(default %(default)s; beyond it the oldest removed frames are "
+                        "marginalised into a prior; 'none': no record, no relinearisation)")
+    pol = DEFAULT_POLICY or Policy()
+    s.add_argument("--relinearize-nis", type=_gate, default=pol.nis, metavar="Q|none",
+                   help="relinearise a component after an accepted loop closure whose NIS "
+                        "exceeds the chi-square quantile Q (default %(default)s)")
+    s.add_argument("--relinearize-every", type=_every, default=pol.every, metavar="K|none",
+                   help="relinearise a component every K of its inputs (default %(default)s)")
+    s.add_argument("--relinearize-gap", type=_defer, default=pol.gap, metavar="K",
+                   help="inputs of a component between two automatic relinearisations "
+                        "triggered by NIS or the gate (default %(default)s)")
+    s.add_argument("--relinearize-regate", type=_every, default=pol.regate, metavar="K|none",
+                   help="when a loop closure fails the gate and K of the last 8 gated closures "
+                        "failed, relinearise its component and gate it again (at most once per "
+                        "--relinearize-gap inputs; default %(default)s)")
     s.add_argument("--record", type=Path, default=None, metavar="PATH.mcap",
                    help="new recording file (default recordings/run-<UTC time>.mcap)")
-    s.add_argument("--restore", type=Path, default=None, metavar="PATH.mcap",
+    s.add_argument("--restore", type=Path, nargs="+", default=None, metavar="PATH.mcap",
                    help="rebuild the maps from this recording first, then go on; the new "
-                        "recording (--record) repeats its inputs so it replays on its own")
+                        "recording (--record) repeats its inputs so it replays on its own. A "
+                        "split recording: its files, a directory or a pattern (only the files "
+                        "from the one holding the latest usable snapshot on are read)")
+    s.add_argument("--split-size", type=_bytes, default=so.split_bytes, metavar="BYTES",
+                   help="start a new recording file once the current one holds this many "
+                        "bytes (K, M, G suffixes: KiB, MiB, GiB; default 0: never). --record "
+                        "run.mcap then writes run_0000.mcap, run_0001.mcap, ...; each starts "
+                        "with a snapshot of every map and replays on its own")
+    s.add_argument("--split-duration", type=float, default=so.split_s, metavar="S",
+                   help="start a new recording file once the current one is S seconds old "
+                        "(default 0: never); with --split-size, whichever comes first")
     s.add_argument("--checkpoint-every", type=int, default=so.checkpoint_every, metavar="K",
                    help="record the state digest every K operations per map "
                         "(default %(default)s)")
     s.add_argument("--queue-size", type=int, default=so.queue_size,
                    help="requests waiting for the worker before 'busy' errors "
-                        "(default %(default)s)")
+                        "(default %(default)s; reads and writes each)")
+    s.add_argument("--queue-bytes", type=_bytes, default=so.queue_bytes, metavar="BYTES",
+                   help="request payload bytes waiting for the worker before 'busy' errors "
+                        "(default %(default)s = 128M; reads and writes each; a queued update "
+                        "costs about 3 times its payload in memory)")
     s.add_argument("--fsync", action="store_true",
                    help="fsync the recording before each ack (survives power loss; slow)")
     s.add_argument("--snapshot-every", type=int, default=so.snapshot_every, metavar="K",
@@ -154,6 +216,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--snapshots-kept", type=int, default=so.snapshots_kept, metavar="S",
                    help="snapshots kept per map (default %(default)s): updates of the last "
                         "(S-1)*K to S*K operations can be retracted")
+    s.add_argument("--retract-window-bytes", type=_bytes, default=so.retract_window_bytes,
+                   metavar="BYTES",
+                   help="bytes each map's retract window (its snapshots and logged requests) "
+                        "holds at most (default %(default)s = 256M); with large maps or "
+                        "requests the window then reaches back fewer operations")
     s.add_argument("--disk-snapshot-every", type=int, default=so.disk_snapshot_every,
                    metavar="K",
                    help="record each map's whole state every K operations (default "
@@ -192,37 +259,93 @@ def build_parser() -> argparse.ArgumentParser:
 
     raw = argparse.RawDescriptionHelpFormatter
     r = sub.add_parser("replay", help="rebuild the maps of a recording and check its digests",
+                       description=_para("Rebuild every map of a recording with the server's own "
+                                   "code and compare the map's digest at every checkpoint "
+                                   "and snapshot: 'identical' (exit 0), or what differs, where "
+                                   "the file is cut or damaged, or that another arithmetic "
+                                   "version made it (docs/recordings.md)."),
                        epilog=EXIT_CODES_HELP, formatter_class=raw)
-    r.add_argument("file", type=Path, help="the recording (complete, cut or damaged)")
+    r.add_argument("file", type=Path, nargs="+",
+                   help="the recording (complete, cut or damaged); a split recording's files: "
+                        "several paths, a directory or a pattern")
     r.add_argument("--json", action="store_true", help="print the result as one JSON line")
     r.add_argument("--no-progress", action="store_true",
                    help="no progress bar (terminal) or progress lines (log)")
 
     i = sub.add_parser("inspect", help="summarise a recording and verify its CRCs",
+                       description=_para("Check every CRC of a recording (chunks, data section, "
+                                   "summary) and list its maps: options, operations, frames "
+                                   "named, senders, checkpoints, the arithmetic version and "
+                                   "the size per input; nothing is replayed."),
                        epilog=EXIT_CODES_HELP, formatter_class=raw)
-    i.add_argument("file", type=Path)
-    i.add_argument("--json", action="store_true")
+    i.add_argument("file", type=Path, nargs="+",
+                   help="the recording; a split recording's files (paths, a directory or a "
+                        "pattern): each is inspected, in set order")
+    i.add_argument("--json", action="store_true", help="one JSON line per file")
 
     v = sub.add_parser("recover", help="write a clean, indexed copy of every complete record "
-                       "of a cut or damaged recording", epilog=EXIT_CODES_HELP,
-                       formatter_class=raw)
-    v.add_argument("file", type=Path, metavar="IN", help="the cut or damaged recording")
+                       "of a cut or damaged recording",
+                       description=_para("Copy every complete record of a cut (SIGKILL, full disk) "
+                                   "or damaged (bit rot) recording into a new chunked, indexed "
+                                   "file that every MCAP reader opens; intact chunks after "
+                                   "damage are copied too. Never overwrites a file."),
+                       epilog=EXIT_CODES_HELP, formatter_class=raw)
+    v.add_argument("file", type=Path, nargs="+", metavar="IN",
+                   help="the cut or damaged recording; or a split recording's files (paths, "
+                        "a directory or a pattern)")
     v.add_argument("-o", "--output", type=Path, required=True, metavar="OUT",
-                   help="the new file (refused if it exists)")
+                   help="the new file (refused if it exists); for a split recording a new "
+                        "directory, which gets a copy of each file under its name")
     v.add_argument("--no-progress", action="store_true",
                    help="no progress bar (terminal) or progress lines (log)")
 
     c = sub.add_parser("cat", help="print the inputs of a recording, one per line",
+                       description=_para("Print every recorded input, one per line: map, seq, "
+                                   "operation, frames, sender and request id, and each AT as "
+                                   "its sample count, mean and covariance (or every sample)."),
                        epilog=EXIT_CODES_HELP, formatter_class=raw)
-    c.add_argument("file", type=Path)
+    c.add_argument("file", type=Path, nargs="+",
+                   help="the recording; a split recording's files (paths, a directory or a "
+                        "pattern), printed in set order")
     c.add_argument("--json", action="store_true", help="one JSON object per line")
     c.add_argument("--samples", action="store_true",
                    help="print every sample (default: the mean and covariance of each AT)")
 
     from mcsm.viz.commands import add_parsers as add_viz_parsers
 
-    add_viz_parsers(sub)  # plot, export-foxglove, view (docs/visualising.md)
+    add_viz_parsers(sub)  # plot, export FORMAT, export-foxglove (docs/visualising.md)
+    from mcsm.viz.rosbag import add_parser as add_export_rosbag
+
+    add_export_rosbag(sub)  # export-rosbag (docs/ros2.md)
+    add_plugin_commands(sub)  # e.g. view, ros2, from the mcsm_client package
     return p
+
+
+#: entry-point group of subcommands other packages add to ``mcsm`` (``mcsm view``, ``mcsm ros2``):
+#: each entry point is a function ``add_parser(subparsers)`` that adds its subparser and sets
+#: its ``run(args) -> int`` with ``set_defaults(plugin_run=...)``. mcsm never imports them by
+#: name, so the server package depends on no client package.
+PLUGIN_GROUP = "mcsm.commands"
+
+
+def add_plugin_commands(sub: Any) -> None:
+    """Add the subcommands of :data:`PLUGIN_GROUP`; one that fails to load is skipped with a
+    warning on stderr (mcsm's own commands still work)."""
+    from importlib.metadata import entry_points
+
+    for ep in sorted(entry_points(group=PLUGIN_GROUP), key=lambda e: e.name):
+        try:
+            ep.load()(sub)
+        except Exception as exc:  # a broken plugin must not break mcsm
+            print(f"mcsm: warning: subcommand {ep.name!r} ({ep.value}) not loaded: "
+                  f"{type(exc).__name__}: {exc}", file=sys.stderr)
+
+
+def _para(text: str) -> str:
+    """A description wrapped for the raw help formatter (which keeps the exit-code table)."""
+    import textwrap
+
+    return textwrap.fill(text, 79)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -230,7 +353,16 @@ def main(argv: list[str] | None = None) -> int:
 
     # `mcsm --listen X serve` works like `mcsm serve --listen X`
     argv = flags_after_command(sys.argv[1:] if argv is None else list(argv), "serve")
-    args = build_parser().parse_args(argv)
+    ros_args: list[str] = []
+    if "--ros-args" in argv:  # ROS's convention: everything from --ros-args on is ROS's
+        at = argv.index("--ros-args")
+        argv, ros_args = argv[:at], argv[at:]
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if ros_args:
+        if not hasattr(args, "ros_args"):
+            parser.error(f"--ros-args is for mcsm ros2, not mcsm {args.command}")
+        args.ros_args = ros_args
     try:
         if args.command == "serve":
             return serve(args)
@@ -246,7 +378,13 @@ def main(argv: list[str] | None = None) -> int:
             return recover_cmd(args)
         if args.command == "cat":
             return cat_cmd(args)
-        if args.command in ("plot", "export-foxglove", "view"):
+        if getattr(args, "plugin_run", None) is not None:
+            return int(args.plugin_run(args))
+        if args.command == "export-rosbag":
+            from mcsm.viz.rosbag import run as run_export_rosbag
+
+            return run_export_rosbag(args)
+        if args.command in ("plot", "export", "export-foxglove"):
             from mcsm.viz.commands import run as run_viz
 
             return run_viz(args)
@@ -259,6 +397,20 @@ def main(argv: list[str] | None = None) -> int:
 
 
 # ------------------------------------------------------------------------------------ serve
+def _bytes(text: str) -> int:
+    """A byte count: digits with an optional K, M or G suffix (KiB, MiB, GiB)."""
+    t = text.strip().upper().removesuffix("B").removesuffix("I")
+    scale = {"K": 1 << 10, "M": 1 << 20, "G": 1 << 30}.get(t[-1:], 1)
+    try:
+        n = int(float(t[:-1] if scale > 1 else t) * scale)
+    except ValueError:
+        n = -1
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"expected a byte count such as 1048576 or 512M, "
+                                         f"got {text!r}")
+    return n
+
+
 def _shrink(text: str) -> float | None:
     if text == "none":
         return None
@@ -279,6 +431,54 @@ def _gate(text: str) -> float | None:
     if not 0.0 < q < 1.0:
         raise argparse.ArgumentTypeError(f"expected a quantile in (0, 1) or 'none', got {text!r}")
     return q
+
+
+def _gate_scale(text: str) -> dict[str, Any] | None:
+    if text == "none":
+        return None
+    parts = text.split(":")
+    try:
+        d: dict[str, Any] = {"window": int(parts[0]), "open": float(parts[1]),
+                             "max": float(parts[2])}
+    except (ValueError, IndexError):
+        d = {"window": 0, "open": 0.0, "max": 0.0}
+    if len(parts) != 3 or not (1 <= d["window"] <= 999 and d["open"] >= 1.0
+                               and d["max"] >= 1.0):
+        raise argparse.ArgumentTypeError(f"expected W:T:S (W in [1, 999], T, S >= 1) or "
+                                         f"'none', got {text!r}")
+    return d
+
+
+def _history(text: str) -> int | None:
+    if text == "none":
+        return None
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if not 2**16 <= n <= 2**40:
+        raise argparse.ArgumentTypeError(f"expected a byte count in [65536, 2**40] or 'none', "
+                                         f"got {text!r}")
+    return n
+
+
+def _every(text: str) -> int | None:
+    return None if text == "none" else _defer(text)
+
+
+def _policy(args: argparse.Namespace) -> dict[str, Any] | None:
+    """The automatic relinearisation policy of the serve flags (None: none asked for)."""
+    pol = DEFAULT_POLICY or Policy()
+    if args.relinearize_nis is None and args.relinearize_every is None \
+            and args.relinearize_regate is None:
+        return None
+    if args.history is None:
+        if (args.relinearize_nis, args.relinearize_every, args.relinearize_regate) == (
+                pol.nis, pol.every, pol.regate):
+            return None  # --history none turns the default policy off
+        raise McsmError("--relinearize-* needs a history (not --history none)")
+    return {"nis": args.relinearize_nis, "every": args.relinearize_every,
+            "regate": args.relinearize_regate, "gap": args.relinearize_gap}
 
 
 def _defer(text: str) -> int:
@@ -348,24 +548,46 @@ def serve(args: argparse.Namespace) -> int:
         while record.exists() and k < 1000:
             record = Path("recordings") / f"run-{stamp}-{k}.mcap"
             k += 1
+    restore: list[Path] | None = None
+    if args.restore:
+        from mcsm.recset import resolve
+
+        try:
+            restore = resolve(args.restore)
+        except (McsmError, OSError) as exc:
+            print(f"mcsm serve: --restore: {exc}", file=sys.stderr)
+            return EXIT_USAGE
     # restoring without --map serves the recording's maps (or "default" if it has none)
     standby_of = list(dict.fromkeys(args.standby_of or []))
     maps = args.map or ([] if args.restore or standby_of else [wire.DEFAULT_MAP])
+    try:
+        policy = _policy(args)
+    except McsmError as exc:
+        print(f"mcsm serve: {exc}", file=sys.stderr)
+        return 2
     opts = ServerOptions(
         maps=list(dict.fromkeys(maps)), prefix=args.prefix,
         map_options={"n_samples": args.samples, "method": args.method, "space": args.space,
                      "analysis": args.analysis, "shrink": args.shrink,
-                     "inflation": args.inflation, "gain": args.gain, "gate": args.gate},
-        record=record, restore=args.restore, checkpoint_every=max(1, args.checkpoint_every),
-        queue_size=args.queue_size, fsync=args.fsync, lru_size=max(1, args.id_memory),
+                     "inflation": args.inflation, "gain": args.gain, "gate": args.gate,
+                     "gate_scale": args.gate_scale, "history": args.history,
+                     "relinearize": policy},
+        record=record, restore=restore, checkpoint_every=max(1, args.checkpoint_every),
+        queue_size=args.queue_size, queue_bytes=max(1, args.queue_bytes),
+        retract_window_bytes=args.retract_window_bytes, split_bytes=args.split_size,
+        split_s=max(0.0, args.split_duration), fsync=args.fsync, lru_size=max(1, args.id_memory),
         id_ttl_s=max(0.0, args.id_ttl_s), snapshot_every=max(1, args.snapshot_every),
         snapshots_kept=max(1, args.snapshots_kept),
         disk_snapshot_every=max(0, args.disk_snapshot_every), standby_of=standby_of,
+        device=args.device,
         gate_defer=None if args.gate_defer is None else DeferOptions(expiry=args.gate_defer))
     try:
         opts.nats = _nats_options(args)
         for name in [*opts.maps, *opts.standby_of]:
             wire.map_keys(name, opts.prefix)
+        if opts.device != "cpu":  # one clear line now, not a traceback at the first map
+            from mcsm.core.device import backend_for
+            backend_for(opts.device)
         conf = server_config(args.listen, args.zenoh_config, connect=args.connect)
     except (McsmError, zenoh.ZError, OSError) as exc:
         print(f"mcsm serve: {exc}", file=sys.stderr)
@@ -386,12 +608,14 @@ def serve(args: argparse.Namespace) -> int:
 
     old_handlers = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     server = Server(session, opts, progress=progress_bar() if args.restore else None)
+    code = EXIT_OK
     try:
         try:
             server.start()
         except (McsmError, OSError) as exc:
             print(f"\nmcsm serve: {exc}", file=sys.stderr)
-            return 2
+            code = EXIT_RECORDING_FAILED if _no_space(exc) else EXIT_USAGE
+            return code
         if args.restore:
             sys.stderr.write("\n")
         log.info("recording to %s", opts.record)
@@ -400,13 +624,26 @@ def serve(args: argparse.Namespace) -> int:
         while not stop.wait(0.5):
             if server.failed.is_set():
                 log.critical("stopping after a recording failure")
-                return 3
-        return 0
+                code = EXIT_RECORDING_FAILED
+                break
     finally:
         server.close()
         session.close()
         for sig, handler in old_handlers.items():
             signal.signal(sig, handler)
+    if server.failed.is_set():  # also when closing the file hit the full disk
+        print(f"mcsm serve: stopped: the recording {server.recording_path} could not be "
+              "written (see the log); it holds every acknowledged input", file=sys.stderr)
+        return EXIT_RECORDING_FAILED
+    return code
+
+
+def _no_space(exc: BaseException) -> bool:
+    """An error of writing the recording itself (full disk, quota, file size limit, I/O)."""
+    import errno
+
+    return isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG,
+                                                      errno.EIO)
 
 
 def _nats_options(args: argparse.Namespace) -> Any:
@@ -447,6 +684,30 @@ def _version_text() -> str:
             f"v{wire.VERSION}, recording format v2)")
 
 
+def _input_files(cmd: str, args: list[Path]) -> tuple[list[Path], str | None]:
+    """The files ``args`` name (one recording, or a split recording's files in set order,
+    :mod:`mcsm.recset`) and why they cannot be read (None if they can)."""
+    from mcsm.recording import RecordingError
+    from mcsm.recset import expand, order
+
+    try:
+        files = expand(args)
+    except RecordingError as exc:
+        return [], f"mcsm {cmd}: {exc}"
+    for f in files:
+        why = _input_file(cmd, f)
+        if why:
+            return files, why
+    try:
+        return order(files), None
+    except (RecordingError, OSError) as exc:
+        return files, f"mcsm {cmd}: {exc}"
+
+
+def _label(files: list[Path]) -> str:
+    return str(files[0]) if len(files) == 1 else f"{files[0]} .. {files[-1].name}"
+
+
 def _input_file(cmd: str, path: Path) -> str | None:
     """Why ``path`` cannot be read as an input file (None if it can)."""
     if not path.exists():
@@ -458,7 +719,10 @@ def _input_file(cmd: str, path: Path) -> str | None:
             pass
     except OSError as exc:
         return f"mcsm {cmd}: {path}: cannot open: {exc.strerror or exc}"
-    return None
+    from mcsm.filetype import not_a_recording
+
+    why = not_a_recording(path)  # e.g. a Foxglove scene: not damaged, not ours
+    return f"mcsm {cmd}: {path}: {why}" if why else None
 
 
 def _output_file(cmd: str, path: Path) -> str | None:
@@ -501,15 +765,17 @@ def replay_cmd(args: argparse.Namespace) -> int:
     from mcsm.core import ARITHMETIC_VERSION
     from mcsm.recording import RecordingError, replay
 
-    why = _input_file("replay", args.file)
+    files, why = _input_files("replay", args.file)
     if why:
         print(why, file=sys.stderr)
         return EXIT_USAGE
-    bar = _progress(args, f"replay {args.file.name}")
+    label = _label(files)
+    bar = _progress(args, f"replay {files[0].name}" + (f" (+{len(files) - 1} files)"
+                                                       if len(files) > 1 else ""))
     try:
-        rep = replay(args.file, progress=bar)
+        rep = replay(files, progress=bar)
     except (RecordingError, OSError) as exc:
-        print(f"mcsm replay: cannot read {args.file}: {exc}", file=sys.stderr)
+        print(f"mcsm replay: cannot read {label}: {exc}", file=sys.stderr)
         return EXIT_USAGE
     finally:
         if bar is not None:
@@ -542,7 +808,8 @@ def replay_cmd(args: argparse.Namespace) -> int:
         code, status = EXIT_OK, "identical"
         verdict = "identical"
     if args.json:
-        print(json.dumps({"file": str(args.file), "status": status, "exit_code": code,
+        print(json.dumps({"file": label, "files": [str(f) for f in files],
+                          "status": status, "exit_code": code,
                           "identical": code == EXIT_OK, "divergence": rep.divergence,
                           "inputs": rep.n_inputs, "checkpoints": n_cp,
                           "checkpoints_ok": rep.checkpoints_ok,
@@ -556,7 +823,7 @@ def replay_cmd(args: argparse.Namespace) -> int:
         return code
     not_compared = (f", {rep.checkpoints_other_arithmetic} not comparable (other arithmetic)"
                     if rep.checkpoints_other_arithmetic else "")
-    print(f"{args.file}: {rep.n_inputs} inputs replayed in {rep.elapsed_s:.3f} s "
+    print(f"{label}: {rep.n_inputs} inputs replayed in {rep.elapsed_s:.3f} s "
           f"({speed:.0f} ops/s); {rep.checkpoints_ok}/{n_cp} checkpoints match{not_compared}")
     for name, d in digests.items():
         print(f"map {name}: seq {rep.states[name].seq}, digest {d}")
@@ -568,20 +835,39 @@ def replay_cmd(args: argparse.Namespace) -> int:
 
 # ------------------------------------------------------------------------------------ inspect
 def inspect_cmd(args: argparse.Namespace) -> int:
+    """Inspect each file (of a split recording: in set order); the exit code is the worst:
+    5 (damaged) over 4 (cut) over 0."""
+    from mcsm.recset import set_file
+
+    files, why = _input_files("inspect", args.file)
+    if why:
+        print(why, file=sys.stderr)
+        return EXIT_USAGE
+    codes = []
+    for k, f in enumerate(files):
+        code = _inspect_one(f, args.json)
+        if code == EXIT_USAGE:
+            return code
+        codes.append(code)
+        if len(files) > 1 and not args.json:
+            sf = set_file(f)
+            print(f"  split recording {sf.set_id[:8]}: file {k + 1} of {len(files)} given "
+                  f"(index {sf.index} of the set)")
+    return max(codes, key=lambda c: {EXIT_DAMAGED: 2, EXIT_CUT: 1}.get(c, 0))
+
+
+def _inspect_one(path: Path, as_json: bool) -> int:
     from mcsm.core import ARITHMETIC_VERSION
     from mcsm.recording import (
         TOPIC_CHECKPOINT,
         TOPIC_CONFIG,
         TOPIC_OPS,
+        TOPIC_SNAPSHOT,
         RecordingError,
         RecordingReader,
     )
 
-    why = _input_file("inspect", args.file)
-    if why:
-        print(why, file=sys.stderr)
-        return EXIT_USAGE
-    reader = RecordingReader(args.file)
+    reader = RecordingReader(path)
     maps: dict[str, dict[str, Any]] = {}
     times: list[int] = []
     try:
@@ -600,6 +886,8 @@ def inspect_cmd(args: argparse.Namespace) -> int:
                                                 reader.arithmetic_version)
             elif item.topic == TOPIC_CHECKPOINT:
                 m["checkpoints"].append((d.get("seq"), d.get("digest"), d.get("reason")))
+            elif item.topic == TOPIC_SNAPSHOT:
+                m.setdefault("snapshots", []).append(d.get("seq"))
             elif item.topic in TOPIC_OPS:
                 op = TOPIC_OPS[item.topic]
                 m["ops"][op] += 1
@@ -618,9 +906,9 @@ def inspect_cmd(args: argparse.Namespace) -> int:
                 elif op == "import":
                     m["frames"].update(map(str, req.get("submap", {}).get("frames", [])))
     except (RecordingError, OSError) as exc:
-        print(f"mcsm inspect: cannot read {args.file}: {exc}", file=sys.stderr)
+        print(f"mcsm inspect: cannot read {path}: {exc}", file=sys.stderr)
         return EXIT_USAGE
-    size = args.file.stat().st_size
+    size = path.stat().st_size
     span = (max(times) - min(times)) / 1e9 if times else 0.0
     code = EXIT_OK if reader.complete else EXIT_DAMAGED if reader.damage else EXIT_CUT
     if reader.layout == "indexed":
@@ -634,9 +922,11 @@ def inspect_cmd(args: argparse.Namespace) -> int:
         crcs = "no records"
     n_in = sum(sum(m["ops"].values()) for m in maps.values())
     per_op = size / n_in if n_in else 0.0
-    if args.json:
+    meta = reader.metadata.get("mcsm", {})
+    if as_json:
         print(json.dumps({
-            "file": str(args.file), "bytes": size, "bytes_per_input": per_op,
+            "file": str(path), "bytes": size, "bytes_per_input": per_op,
+            "set": meta.get("set"), "set_index": meta.get("set_index"),
             "complete": reader.complete, "cut": reader.cut, "damage": reader.damage,
             "tail_error": reader.tail_error, "exit_code": code, "library": reader.library,
             "layout": reader.layout, "chunks": reader.n_chunks,
@@ -647,9 +937,10 @@ def inspect_cmd(args: argparse.Namespace) -> int:
                          "ops": dict(m["ops"]),
                          "arithmetic_version": m["arithmetic_version"],
                          "frames_named": len(m["frames"]), "last_seq": m["last_seq"],
+                         "snapshots": m.get("snapshots", []),
                          "checkpoints": m["checkpoints"]} for n, m in maps.items()}}))
         return code
-    print(f"file:      {args.file} ({size} bytes, {per_op / 1e3:.1f} kB per input, written by "
+    print(f"file:      {path} ({size} bytes, {per_op / 1e3:.1f} kB per input, written by "
           f"{reader.library or '?'})")
     state = _state_line(reader.complete, reader.cut, reader.damage, reader.tail_error)
     print(f"state:     {state}")
@@ -675,8 +966,13 @@ def inspect_cmd(args: argparse.Namespace) -> int:
             print("  updates:    " + ", ".join(f"{k} {v}" for k, v in sorted(m["kinds"].items())))
         print(f"  frames named in inputs: {len(m['frames'])}")
         print(f"  senders: {len(m['senders'])}")
+        snaps = m.get("snapshots", [])
+        if snaps:
+            print(f"  snapshots: {len(snaps)} (seq {snaps[0]} .. {snaps[-1]})")
         cps = m["checkpoints"]
-        print(f"  checkpoints: {len(cps)}")
+        shown = (f" (the first 3 and the last 2 of {len(cps)} listed; --json lists all)"
+                 if len(cps) > 5 else "")
+        print(f"  checkpoints: {len(cps)}{shown}")
         for seq, dig, why_cp in cps[:3] + (cps[-2:] if len(cps) > 5 else cps[3:]):
             print(f"    seq {seq:>7} {why_cp:<8} {dig}")
     return code
@@ -684,31 +980,51 @@ def inspect_cmd(args: argparse.Namespace) -> int:
 
 # ------------------------------------------------------------------------------------ recover
 def recover_cmd(args: argparse.Namespace) -> int:
-    from mcsm.recording import TOPIC_CHECKPOINT, TOPIC_CONFIG, RecordingError, recover
-
-    why = _input_file("recover", args.file) or _output_file("recover", args.output)
+    """Recover one file into ``-o FILE``, or each file of a split recording into the new
+    directory ``-o DIR`` (same names)."""
+    files, why = _input_files("recover", args.file)
     if why:
         print(why, file=sys.stderr)
         return EXIT_USAGE
-    if args.output.resolve() == args.file.resolve():
-        print("mcsm recover: the output must be a new file", file=sys.stderr)
+    if len(files) == 1:
+        why = _output_file("recover", args.output)
+        if not why and args.output.resolve() == files[0].resolve():
+            why = "mcsm recover: the output must be a new file"
+        if why:
+            print(why, file=sys.stderr)
+            return EXIT_USAGE
+        return _recover_one(args, files[0], args.output)
+    why = _output_file("recover", args.output)
+    if why:
+        print(why, file=sys.stderr)
         return EXIT_USAGE
-    bar = _progress(args, f"recover {args.file.name}")
+    args.output.mkdir()
+    for f in files:
+        code = _recover_one(args, f, args.output / f.name)
+        if code != EXIT_OK:
+            return code
+    return EXIT_OK
+
+
+def _recover_one(args: argparse.Namespace, src: Path, dst: Path) -> int:
+    from mcsm.recording import TOPIC_CHECKPOINT, TOPIC_CONFIG, RecordingError, recover
+
+    bar = _progress(args, f"recover {src.name}")
     try:
-        rep = recover(args.file, args.output, progress=bar)
+        rep = recover(src, dst, progress=bar)
     except (RecordingError, OSError) as exc:
-        args.output.unlink(missing_ok=True)
+        dst.unlink(missing_ok=True)
         print(f"mcsm recover: {exc}", file=sys.stderr)
         return EXIT_USAGE
     finally:
         if bar is not None:
             bar.close()
     state = _state_line(rep.source_complete, rep.source_cut, rep.damage, rep.tail_error)
-    print(f"{args.file}: {state}")
+    print(f"{src}: {state}")
     if rep.chunks_after_damage:
         print(f"  {rep.chunks_after_damage} intact chunks after the damage were copied too; the "
               "records lost in the damaged part leave a gap, where a replay of the copy stops")
-    print(f"{args.output}: {rep.n_inputs} inputs, {rep.messages[TOPIC_CHECKPOINT]} checkpoints, "
+    print(f"{dst}: {rep.n_inputs} inputs, {rep.messages[TOPIC_CHECKPOINT]} checkpoints, "
           f"{rep.messages[TOPIC_CONFIG]} map configs ({rep.bytes_written} bytes, indexed)")
     return EXIT_OK
 
@@ -744,15 +1060,26 @@ def _input_json(op: str, req: Any, with_samples: bool) -> dict[str, Any]:
 
 
 def cat_cmd(args: argparse.Namespace) -> int:
-    from mcsm.recording import TOPIC_CONFIG, TOPIC_OPS, RecordingError, RecordingReader
-    from mcsm.recording import decode_input as decode
+    from mcsm.recording import RecordingReader
 
-    why = _input_file("cat", args.file)
+    files, why = _input_files("cat", args.file)
     if why:
         print(why, file=sys.stderr)
         return EXIT_USAGE
-    reader = RecordingReader(args.file)
     n_samples: dict[str, int] = {}
+    for f in files:
+        reader = RecordingReader(f)
+        code = _cat_file(args, f, reader, n_samples)
+        if code != EXIT_OK:
+            return code
+    return EXIT_OK
+
+
+def _cat_file(args: argparse.Namespace, path: Path, reader: Any,
+              n_samples: dict[str, int]) -> int:
+    from mcsm.recording import TOPIC_CONFIG, TOPIC_OPS, RecordingError
+    from mcsm.recording import decode_input as decode
+
     try:
         for item in reader:
             d = item.data
@@ -778,10 +1105,10 @@ def cat_cmd(args: argparse.Namespace) -> int:
     except BrokenPipeError:
         raise
     except (RecordingError, OSError) as exc:
-        print(f"mcsm cat: cannot read {args.file}: {exc}", file=sys.stderr)
+        print(f"mcsm cat: cannot read {path}: {exc}", file=sys.stderr)
         return EXIT_USAGE
     if not reader.complete:
-        print(f"mcsm cat: {args.file}: "
+        print(f"mcsm cat: {path}: "
               f"{_state_line(False, reader.cut, reader.damage, reader.tail_error)}",
               file=sys.stderr)
         return EXIT_DAMAGED if reader.damage else EXIT_CUT

@@ -115,10 +115,22 @@ class LimitExceeded(McsmError):
 
 
 class Busy(LimitExceeded):
-    """The server's request queue is full: nothing was applied; retry later with the same id."""
+    """The server's request queue is full (by count, or by bytes of queued requests: ``what``
+    says which): nothing was applied; retry later with the same id."""
 
-    def __init__(self, queue_length: int, limit: int) -> None:
-        super().__init__("request queue length", queue_length, limit)
+    def __init__(self, queue_length: int, limit: int,
+                 what: str = "request queue length") -> None:
+        super().__init__(what, queue_length, limit)
+
+
+class DeviceMemoryExceeded(LimitExceeded):
+    """A map on a GPU (``device="cuda"``) would need more device memory than is free: the
+    request was refused before anything changed."""
+
+    def __init__(self, what: str, needed: int, free: int) -> None:
+        McsmError.__init__(
+            self, f"{what} needs {needed} bytes of device memory, {free} are free: refused, "
+            f"nothing changed", what=what, value=str(needed), limit=str(free))
 
 
 class RequestIdReused(McsmError):
@@ -187,6 +199,18 @@ class NoServer(Timeout):
             timeout_s=timeout_s)
 
 
+class Unreachable(Timeout):
+    """The client's Zenoh session could not connect to any endpoint (nothing listens there, or
+    the network refuses): said at once, after Zenoh's own connect timeout."""
+
+    def __init__(self, where: str, connect_timeout_s: float, detail: str = "") -> None:
+        McsmError.__init__(
+            self, f"cannot connect to {where}: no Zenoh peer accepted a connection within "
+            f"{connect_timeout_s:g} s{f' ({detail})' if detail else ''}; is `mcsm serve` "
+            "(or a router) running there?", what="connect", where=where,
+            timeout_s=connect_timeout_s)
+
+
 class NoPermittedServer(Timeout):
     """The map's server is alive, but every request on this key got no reply at all.
 
@@ -206,7 +230,8 @@ _REGISTRY: dict[str, type[McsmError]] = {
     c.__name__: c
     for c in (McsmError, BadMessage, UnsupportedVersion, InvalidSamples, SampleCountMismatch,
               UnknownFrame, FrameExists, InvalidOperation, NotRelated, NumericalError,
-              LimitExceeded, Busy, RequestIdReused, Forbidden, NotReplicated, InternalError,
+              LimitExceeded, Busy, DeviceMemoryExceeded, RequestIdReused, Forbidden,
+              NotReplicated, InternalError,
               Timeout,
-              NoServer, NoPermittedServer)
+              NoServer, NoPermittedServer, Unreachable)
 }

@@ -45,6 +45,8 @@ class Change:
     frames_added: tuple[str, ...] = ()
     frames_removed: tuple[str, ...] = ()
     verdict: wire.Verdict | None = None
+    relin: dict[str, Any] | None = None
+    """The relinearisation it ran (:meth:`mcsm.core.relinearize.RelinReport.to_dict`)."""
 
 
 class Context(Protocol):
@@ -147,7 +149,8 @@ def _has(smap: StochasticMap, frame: str) -> bool:
 def _update_change(smap: StochasticMap, req: wire.UpdateRequest, trusted: bool = False
                    ) -> Change:
     r, v = gated_update(smap, req, trusted)
-    return Change(r.kind, r.component, frames_added=tuple(r.frames_added), verdict=v)
+    return Change(r.kind, r.component, frames_added=tuple(r.frames_added), verdict=v,
+                  relin=None if r.relin is None else r.relin.to_dict())
 
 
 def _update_parts(req: wire.UpdateRequest) -> list[bytes | memoryview]:
@@ -187,6 +190,14 @@ def _retract_extra(st: MapState, req: wire.RetractRequest) -> dict[str, Any]:
     """What changed: the target and the verdicts of the re-gated inputs."""
     return {"target": req.target,
             "changed": {rid: v.to_dict() for rid, v in st.last_changed.items()}}
+
+
+def _relinearize_change(smap: StochasticMap, req: wire.RelinearizeRequest,
+                        trusted: bool = False) -> Change:
+    del trusted
+    rep = smap.relinearize(req.frame or None)
+    return Change("relinearize", smap.root(req.frame) if req.frame else None,
+                  relin=rep.to_dict())
 
 
 def _bytes_view(a: wire.Samples) -> memoryview:
@@ -272,6 +283,12 @@ _TABLE = (
               wire.encode_retract, wire.decode_ack, topic="/mcsm/in/reinstate", retract=False,
               fingerprint_parts=_target_parts, event_extra=_retract_extra,
               describe=lambda req: {"target": req.target}),
+    Operation("relinearize", "relinearize", wire.RelinearizeRequest,
+              _no_n(wire.decode_relinearize), wire.encode_relinearize, wire.decode_ack,
+              topic="/mcsm/in/relinearize", change=_relinearize_change,
+              fingerprint_parts=lambda req: [f"\0{req.frame}".encode()],
+              event_frames=lambda req, ack: (req.frame,) if req.frame else (),
+              describe=lambda req: {"frame": req.frame}),
     Operation("verdict", "verdict", wire.VerdictRequest, _no_n(wire.decode_verdict_request),
               wire.encode_verdict_request, wire.decode_ack, answer=_verdict_answer),
     Operation("query", "query", wire.QueryRequest, _no_n(wire.decode_query), wire.encode_query,
@@ -399,10 +416,13 @@ def event(name: str, st: MapState, req: Any, ack: wire.Ack, *, time_ns: int,
     extra: dict[str, Any] = {"verdict": ack.verdict.to_dict()} if ack.verdict else {}
     if st.last_changed:  # held closures (--gate-defer) this input decided
         extra["changed"] = {rid: v.to_dict() for rid, v in st.last_changed.items()}
+    if ack.relin:  # a relinearisation: what it did
+        extra["relin"] = ack.relin
     extra.update(op.event_extra(st, req))
     return wire.Event(map=st.name, seq=ack.seq, op=name, kind=ack.kind,
                       frames=tuple(op.event_frames(req, ack)), component=ack.component,
-                      time_ns=time_ns, digest=digest, extra=extra)
+                      time_ns=time_ns, digest=digest, extra=extra,
+                      request_id=str(getattr(req, "request_id", "") or ""))
 
 
 __all__ = ["Change", "Context", "Operation", "OPS", "BY_LEAF", "RECORDED", "INPUT_TOPICS",

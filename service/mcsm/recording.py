@@ -41,10 +41,12 @@ import mmap
 import os
 import struct
 import sys
+import tempfile
 import time
+import uuid
 import zlib
 from collections import Counter
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from importlib import resources
 from io import BytesIO
@@ -58,7 +60,6 @@ from mcap.opcode import Opcode
 from mcap.records import (
     Channel,
     Chunk,
-    ChunkIndex,
     DataEnd,
     Footer,
     Header,
@@ -73,12 +74,15 @@ from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 
 from mcsm import __version__, ops, wire
+from mcsm.carry import decode_ids, decode_window, encode_ids, encode_window
+from mcsm.carry import decode_snapshot as decode_snapshot  # re-exported (replication)
+from mcsm.carry import encode_snapshot as encode_snapshot
 from mcsm.core import ARITHMETIC_VERSION
 from mcsm.core.smap import StochasticMap
 from mcsm.deferral import DeferOptions, DeferState
 from mcsm.errors import McsmError
 from mcsm.history import DEFAULT_SNAPSHOT_EVERY, DEFAULT_SNAPSHOTS_KEPT
-from mcsm.state import DEFAULT_LRU, MapState
+from mcsm.state import DEFAULT_ID_TTL_S, DEFAULT_LRU, MapState
 
 log = logging.getLogger(__name__)
 
@@ -112,6 +116,10 @@ _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
 _RECORD_22 = struct.Struct("<BQHIQQ")  # a message's head, or a one-entry message index
 _CHUNK_FIELDS = struct.Struct("<QQQII")  # start, end, uncompressed size and CRC, len(compr.)
+# a chunk index record up to its compression string: opcode, length, start and end times,
+# chunk offset and length, one message index offset (byte count, channel, offset), message
+# index length, compression string length
+_CHUNK_INDEX_HEAD = struct.Struct("<BQQQQQIHQQI")
 #: lz4 "fast acceleration" 2: about half the CPU time of level 0 for nearly the same ratio on
 #: planar samples (benchmarks/recording_size.py); any lz4 frame decoder reads it
 _LZ4_LEVEL = -2
@@ -147,10 +155,12 @@ decode_input = ops.decode_input
 # Writing
 # --------------------------------------------------------------------------------------------
 
-def _new_writer(fh: BinaryIO, layout: str, library: str) -> Any:
+def _new_writer(fh: BinaryIO, layout: str, library: str,
+                spill_dir: str | os.PathLike[str] | None = None) -> Any:
     """A started writer for ``layout`` (see :data:`LAYOUTS`)."""
     if layout in ("indexed", "indexed-lz4"):
-        return ChunkPerInputWriter(fh, lz4=layout == "indexed-lz4", library=library)
+        return ChunkPerInputWriter(fh, lz4=layout == "indexed-lz4", library=library,
+                                   spill_dir=spill_dir)
     if layout == "flat":
         w = Writer(fh, use_chunking=False, enable_crcs=True)
     else:
@@ -178,15 +188,26 @@ class ChunkPerInputWriter:
     """
 
     LZ4_RETRY = 64
+    #: bytes of chunk index records kept in memory before they go to the spill file
+    SPILL_BYTES = 256 * 1024
 
-    def __init__(self, fh: BinaryIO, *, lz4: bool, library: str) -> None:
+    def __init__(self, fh: BinaryIO, *, lz4: bool, library: str,
+                 spill_dir: str | os.PathLike[str] | None = None) -> None:
         self._fd = fh.fileno()
         self._lz4 = lz4
         self._pos = 0
         self._crc = 0  # data section CRC so far
         self._schemas: dict[int, Schema] = {}
         self._channels: dict[int, Channel] = {}
-        self._chunk_indexes: list[ChunkIndex] = []
+        # The summary needs one chunk index per chunk (one per input). They are packed as
+        # records into a small buffer and spilled to an unlinked temporary file beside the
+        # recording, so a long recording costs no memory per input; finish() copies them.
+        self._ci_buf = bytearray()
+        self._ci_spill: BinaryIO | None = None
+        self._ci_bytes = 0
+        self._n_chunks = 0
+        self._spill_dir = spill_dir
+        self.failed = False  # a write failed: the file ends after its last complete record
         self._metadata_indexes: list[MetadataIndex] = []
         self._counts: Counter[int] = Counter()
         self._skip_lz4: dict[int, int] = {}
@@ -196,17 +217,44 @@ class ChunkPerInputWriter:
         self._record(Header(profile="", library=library))
 
     def _write(self, parts: list[bytes], crcs: list[int | None] | None = None) -> None:
-        """Append ``parts`` with one system call; ``crcs`` may give parts' own CRC-32."""
+        """Append ``parts`` with one system call; ``crcs`` may give parts' own CRC-32.
+
+        Raises
+        ------
+        OSError
+            If the write fails (full disk, I/O error): the file is cut back to its last
+            complete record first, and every later write is refused.
+        """
+        if self.failed:
+            raise OSError("the recording failed earlier; nothing more is written")
+        crc = self._crc
         total = 0
         for k, part in enumerate(parts):
             known = crcs[k] if crcs is not None else None
             if known is not None and _crc32_combine is not None:
-                self._crc = _crc32_combine(self._crc, known, len(part))
+                crc = _crc32_combine(crc, known, len(part))
             else:
-                self._crc = _crc32(part, self._crc)
+                crc = _crc32(part, crc)
             total += len(part)
-        _write_all(self._fd, parts, total)
+        self._write_raw(parts, total)
+        self._crc = crc
         self._pos += total
+
+    def _write_raw(self, parts: list[bytes], total: int) -> None:
+        try:
+            _write_all(self._fd, parts, total)
+        except OSError:
+            self._fail()
+            raise
+
+    def _fail(self) -> None:
+        """A write failed: cut the file back to its last complete record (so that it reads
+        as cut, never as damaged) and refuse every later write."""
+        self.failed = True
+        try:
+            os.ftruncate(self._fd, self._pos)
+        except OSError as exc:
+            log.error("could not cut the recording back to byte %d: %s", self._pos, exc)
 
     def _record(self, rec: Any) -> int:
         rb = RecordBuilder()
@@ -266,12 +314,10 @@ class ChunkPerInputWriter:
             self._write([chunk_head, packed, index])
         else:
             self._write([chunk_head, head, data, index], [None, head_crc, data_crc, None])
-        self._chunk_indexes.append(ChunkIndex(
-            message_start_time=log_time, message_end_time=log_time, chunk_start_offset=start,
-            chunk_length=9 + chunk_len,
-            message_index_offsets={channel_id: start + 9 + chunk_len},
-            message_index_length=len(index), compression=compression.decode(),
-            compressed_size=stored, uncompressed_size=size))
+        self._chunk_index(_CHUNK_INDEX_HEAD.pack(
+            0x08, 8 * 4 + 4 + 10 + 8 + 4 + len(compression) + 16, log_time, log_time, start,
+            9 + chunk_len, 10, channel_id, start + 9 + chunk_len, len(index),
+            len(compression)) + compression + _U64.pack(stored) + _U64.pack(size))
         self._counts[channel_id] += 1
         self._t0 = log_time if self._t0 is None else min(self._t0, log_time)
         self._t1 = max(self._t1, log_time)
@@ -279,40 +325,104 @@ class ChunkPerInputWriter:
     def flush(self) -> None:
         """Nothing to do: every record reached the OS when the call that wrote it returned."""
 
+    def _chunk_index(self, rec: bytes) -> None:
+        """Keep one packed chunk index record for the summary (spilled beyond SPILL_BYTES)."""
+        self._ci_buf += rec
+        self._ci_bytes += len(rec)
+        self._n_chunks += 1
+        if len(self._ci_buf) >= self.SPILL_BYTES:
+            self._spill()
+
+    def _spill(self) -> None:
+        if self._ci_spill is None:
+            self._ci_spill = tempfile.TemporaryFile(  # noqa: SIM115 - closed in finish/close
+                prefix=".mcsm-chunk-index-", dir=self._spill_dir, buffering=0)
+        try:
+            self._ci_spill.write(self._ci_buf)
+        except OSError:
+            self._fail()
+            raise
+        self._ci_buf.clear()
+
+    def close_spill(self) -> None:
+        """Drop the spilled chunk indexes (after finish, or when the file is abandoned)."""
+        if self._ci_spill is not None:
+            self._ci_spill.close()
+            self._ci_spill = None
+        self._ci_buf.clear()
+
     def finish(self) -> None:
-        """Write the data end record, the summary and the footer."""
+        """Write the data end record, the summary and the footer. The chunk indexes are
+        copied from the spill file block by block, so closing costs no memory per input.
+
+        Raises
+        ------
+        OSError
+            If a write fails: the file is cut back to its end before the data end record (so
+            it reads as cut, as after a SIGKILL; ``mcsm recover`` indexes it).
+        """
+        data_end = self._pos
+        try:
+            self._finish()
+        except OSError:
+            self._pos = data_end
+            self._fail()
+            raise
+        finally:
+            self.close_spill()
+
+    def _finish(self) -> None:
         self._record(DataEnd(data_section_crc=self._crc))
         summary_start = self._pos
-        rb = RecordBuilder()
         offsets: list[SummaryOffset] = []
+        crc = 0
+        pos = summary_start
+
+        def out(data: bytes) -> None:
+            nonlocal crc, pos
+            crc = _crc32(data, crc)
+            self._write_raw([data], len(data))
+            pos += len(data)
 
         def group(opcode: int, records: list[Any]) -> None:
             if not records:  # no offset for an empty group (readers flag one as an error)
                 return
-            begin = rb.count
+            rb = RecordBuilder()
             for r in records:
                 r.write(rb)
-            offsets.append(SummaryOffset(group_opcode=opcode, group_start=summary_start + begin,
-                                         group_length=rb.count - begin))
+            data = rb.end()
+            offsets.append(SummaryOffset(group_opcode=opcode, group_start=pos,
+                                         group_length=len(data)))
+            out(data)
 
         group(Opcode.SCHEMA, list(self._schemas.values()))
         group(Opcode.CHANNEL, list(self._channels.values()))
         group(Opcode.STATISTICS, [Statistics(
             attachment_count=0, channel_count=len(self._channels),
-            channel_message_counts=dict(self._counts), chunk_count=len(self._chunk_indexes),
+            channel_message_counts=dict(self._counts), chunk_count=self._n_chunks,
             message_count=sum(self._counts.values()), message_start_time=self._t0 or 0,
             message_end_time=self._t1, metadata_count=len(self._metadata_indexes),
             schema_count=len(self._schemas))])
-        group(Opcode.CHUNK_INDEX, list(self._chunk_indexes))
+        if self._ci_bytes:
+            offsets.append(SummaryOffset(group_opcode=Opcode.CHUNK_INDEX, group_start=pos,
+                                         group_length=self._ci_bytes))
+            if self._ci_spill is not None:
+                self._ci_spill.seek(0)
+                while True:
+                    block = self._ci_spill.read(1 << 20)
+                    if not block:
+                        break
+                    out(block)
+            out(bytes(self._ci_buf))
         group(Opcode.METADATA_INDEX, list(self._metadata_indexes))
-        summary_offset_start = summary_start + rb.count
+        summary_offset_start = pos
+        rb = RecordBuilder()
         for o in offsets:
             o.write(rb)
-        summary = rb.end()
+        out(rb.end())
         footer = struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, summary_offset_start)
-        footer += _U32.pack(_crc32(footer, _crc32(summary)))
-        parts = [summary, footer, _MAGIC]
-        _write_all(self._fd, parts, sum(map(len, parts)))
+        footer += _U32.pack(_crc32(footer, crc))
+        self._write_raw([footer, _MAGIC], len(footer) + len(_MAGIC))
 
 
 def _write_all(fd: int, parts: list[bytes], total: int) -> None:
@@ -323,33 +433,34 @@ def _write_all(fd: int, parts: list[bytes], total: int) -> None:
             rest = rest[os.write(fd, rest):]
 
 
-def encode_snapshot(snap: dict[str, Any]) -> dict[str, Any]:
-    """A :meth:`StochasticMap.snapshot` as msgpack-able values (edges as raw float64)."""
-    return {**{k: v for k, v in snap.items() if k != "components"},
-            "components": [{**{k: v for k, v in c.items() if k != "edges"},
-                            "edges": wire.pack_array(c["edges"])}
-                           for c in snap["components"]]}
+def _load_trim() -> Callable[[], None]:
+    """glibc's ``malloc_trim(0)``, or a no-op elsewhere."""
+    try:
+        import ctypes
+
+        fn = ctypes.CDLL("libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return lambda: None
+
+    def trim() -> None:
+        fn(0)
+
+    return trim
 
 
-def decode_snapshot(obj: Any, n_samples: int) -> dict[str, Any]:
-    """Inverse of :func:`encode_snapshot`, checked (shapes, finiteness).
+_trim_heap = _load_trim()
+"""Hand the heap's free pages back to the OS. A snapshot record is written through a few
+transient buffers of its whole size (tens of MB with 100,000 remembered ids); glibc keeps
+those pages after they are freed, so without this a server's resident memory ratchets up
+with the largest snapshot written (about 20 MB in benchmarks/soak_memory.py). Called after
+each snapshot (every --disk-snapshot-every operations): about a millisecond."""
 
-    Raises
-    ------
-    McsmError
-        If the record is not a snapshot of a map with ``n_samples`` samples.
-    """
-    if not isinstance(obj, dict) or not isinstance(obj.get("components"), list):
-        raise McsmError("a snapshot record without components")
-    comps = []
-    for c in obj["components"]:
-        if not isinstance(c, dict):
-            raise McsmError("a snapshot component is not a map")
-        edges = wire.unpack_array(c.get("edges"), "edges", 3, max_elems=1 << 27)
-        if edges.shape[1:] != (n_samples, 7):
-            raise McsmError(f"snapshot edges {edges.shape} do not fit N = {n_samples}")
-        comps.append({**c, "edges": edges})
-    return {**obj, "components": comps}
+
+def split_name(base: str | os.PathLike[str], index: int) -> Path:
+    """File ``index`` of a split recording whose ``--record`` path is ``base``:
+    ``run.mcap`` gives ``run_0000.mcap``, ``run_0001.mcap``, ... (``mcsm serve --split-size``)."""
+    b = Path(base)
+    return b.with_name(f"{b.stem}_{int(index):04d}{b.suffix or '.mcap'}")
 
 
 class Recorder:
@@ -357,31 +468,71 @@ class Recorder:
 
     Parameters
     ----------
-    path : the new file (refused if it exists)
+    path : the new file (refused if it exists); with splitting, the base name of the files
+        (:func:`split_name`)
     fsync : also ``os.fsync`` after each input (survives power loss; ~4 ms per message here)
     layout : one of :data:`LAYOUTS` (default ``"indexed-lz4"``; ``"flat"`` is format 1, for
         benchmark comparisons only); the environment variable ``MCSM_RECORDING_LAYOUT`` sets
         the default
+    split_bytes, split_s : start a new file once the current one holds this many bytes, or
+        was opened this many seconds ago (0: never; ``mcsm serve --split-size`` and
+        ``--split-duration``). The check follows each input, so a file holds at least one
+        input and ends at a clean close; the next file starts with every map's config and a
+        snapshot (with the remembered ids and the retract window), so it replays on its own.
+        A file is never split before its inputs take as many bytes as the snapshots it
+        starts with, so snapshots never take more than half of a split recording.
+        The files share a set id and count up (the ``mcsm`` metadata's ``set`` and
+        ``set_index``), which is how readers order a set and find gaps (:mod:`mcsm.recset`).
 
     Raises
     ------
     RecordingError
-        If the file exists or the layout is unknown.
+        If the file (or, with splitting, any file of the set) exists or the layout is
+        unknown.
+    OSError
+        If the file cannot be created or written.
     """
 
     def __init__(self, path: str | os.PathLike[str], *, fsync: bool = False,
-                 layout: str | None = None) -> None:
-        self.path = Path(path)
+                 layout: str | None = None, split_bytes: int = 0,
+                 split_s: float = 0.0) -> None:
+        self.base = Path(path)
         self.layout = layout or os.environ.get(LAYOUT_ENV) or DEFAULT_LAYOUT
         if self.layout not in LAYOUTS:
-            raise RecordingError(str(self.path), f"unknown recording layout {self.layout!r} "
+            raise RecordingError(str(self.base), f"unknown recording layout {self.layout!r} "
                                  f"(expected one of {', '.join(LAYOUTS)})")
-        if self.path.exists():
-            raise RecordingError(str(self.path), "exists; refusing to overwrite a recording")
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._fh: BinaryIO = open(self.path, "xb")  # noqa: SIM115 - closed in close()
+        self.split_bytes = max(0, int(split_bytes))
+        self.split_s = max(0.0, float(split_s))
+        self.splitting = bool(self.split_bytes or self.split_s)
+        self.set_id = uuid.uuid4().hex if self.splitting else ""
+        self.index = 0
+        self.paths: list[Path] = []
         self._fsync = fsync
-        self._w = _new_writer(self._fh, self.layout, f"mcsm {__version__}")
+        self._states: dict[str, MapState] = {}
+        self._configs: dict[str, dict[str, Any]] = {}
+        first = split_name(self.base, 0) if self.splitting else self.base
+        taken = ([p for p in self.base.parent.glob(f"{self.base.stem}_[0-9]*{self.base.suffix}")]
+                 if self.splitting and self.base.parent.is_dir() else [])
+        if first.exists() or taken:
+            raise RecordingError(str(first if first.exists() else taken[0]),
+                                 "exists; refusing to overwrite a recording")
+        self.n_inputs = 0
+        self.closed = False
+        self._open(first)
+
+    def _open(self, path: Path) -> None:
+        """Start the file ``path``: header, schemas, channels, the ``mcsm`` metadata."""
+        if path.exists():
+            raise RecordingError(str(path), "exists; refusing to overwrite a recording")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self.path = path
+        self._fh: BinaryIO = open(path, "xb")  # noqa: SIM115 - closed in close()
+        self._file_open = True
+        self.paths.append(path)
+        self._snap_seq: dict[str, int] = {}  # map -> seq of its last snapshot in this file
+        self._has_inputs: set[str] = set()  # maps with an input in this file
+        self._opened = time.monotonic()
+        self._w = _new_writer(self._fh, self.layout, f"mcsm {__version__}", path.parent)
         self._channels: dict[str, int] = {}
         schema_ids: dict[str, int] = {}
         for topic, (name, filename) in _SCHEMAS.items():
@@ -390,12 +541,13 @@ class Recorder:
                                                            schema_bytes(filename))
             self._channels[topic] = self._w.register_channel(topic, "msgpack", schema_ids[name])
         fmt = 1 if self.layout == "flat" else FORMAT_VERSION
-        self._w.add_metadata("mcsm", {"software": f"mcsm {__version__}",
-                                      "format": f"mcsm recording v{fmt}",
-                                      "arithmetic_version": str(ARITHMETIC_VERSION)})
+        meta = {"software": f"mcsm {__version__}", "format": f"mcsm recording v{fmt}",
+                "arithmetic_version": str(ARITHMETIC_VERSION)}
+        if self.splitting:
+            meta.update({"set": self.set_id, "set_index": str(self.index)})
+        self._w.add_metadata("mcsm", meta)
         self._w.flush()
-        self.n_inputs = 0
-        self.closed = False
+        self._start_size = self._size()  # grows by the snapshots a split file starts with
 
     def _add(self, topic: str, obj: dict[str, Any], publish_ns: int, seq: int) -> None:
         data = wire.pack({"v": wire.VERSION, **obj})
@@ -412,57 +564,139 @@ class Recorder:
 
     def config(self, state: MapState, checkpoint_every: int, server_id: str = "",
                restored_from: str | None = None) -> None:
-        """Record the options that rebuild ``state``'s empty map (once per map, first)."""
+        """Record the options that rebuild ``state``'s empty map (once per map, first). The
+        recorder keeps ``state`` to snapshot it at the start of the next file of a split
+        recording."""
         now = time.time_ns()
-        self._add(TOPIC_CONFIG, {"map": state.name, "options": state.map.options(),
-                                 "checkpoint_every": int(checkpoint_every), "time_ns": now,
-                                 "snapshot_every": state.history.snapshot_every,
-                                 "snapshots_kept": state.history.snapshots_kept,
-                                 "gate_defer": (None if state.deferral is None
-                                                else state.deferral.options.to_dict()),
-                                 "server_id": server_id, "restored_from": restored_from,
-                                 "software": f"mcsm {__version__}",
-                                 "arithmetic_version": ARITHMETIC_VERSION}, now, 0)
+        rec = {"map": state.name, "options": state.map.options(),
+               "checkpoint_every": int(checkpoint_every), "time_ns": now,
+               "snapshot_every": state.history.snapshot_every,
+               "snapshots_kept": state.history.snapshots_kept,
+               "retract_window_bytes": state.history.max_bytes,
+               "gate_defer": (None if state.deferral is None
+                              else state.deferral.options.to_dict()),
+               "server_id": server_id, "restored_from": restored_from,
+               "software": f"mcsm {__version__}",
+               "arithmetic_version": ARITHMETIC_VERSION}
+        self._states[state.name] = state
+        self._configs[state.name] = rec
+        self._add(TOPIC_CONFIG, rec, now, 0)
         self._flush(self._fsync)
 
     def input(self, op: str, map_name: str, seq: int, recv_ns: int, sender: str,
               request_id: str, payload: bytes) -> None:
-        """Record one applied input and flush it (call before acknowledging)."""
+        """Record one applied input and flush it (call before acknowledging). With
+        splitting, a full file is closed after the input and the next one started."""
         self._add(INPUT_TOPICS[op], {"map": map_name, "seq": seq, "recv_ns": recv_ns,
                                      "sender": sender, "id": request_id,
                                      "request": bytes(payload)}, recv_ns, seq)
         self._flush(self._fsync)
         self.n_inputs += 1
+        self._has_inputs.add(map_name)
+        if self._split_due():
+            self.split()
 
     def checkpoint(self, map_name: str, seq: int, digest: str, reason: str) -> None:
         self._add(TOPIC_CHECKPOINT, {"map": map_name, "seq": seq, "digest": digest,
                                      "reason": reason}, time.time_ns(), seq)
         self._flush(self._fsync)
 
-
-    def snapshot(self, state: MapState) -> None:
-        """Record ``state``'s whole map (versioned, with its digest and seq) and flush it:
-        ``--restore`` starts from the latest one plus the inputs after it."""
-        now = time.time_ns()
-        self._add(TOPIC_SNAPSHOT, {"map": state.name, "seq": state.seq,
-                                   "digest": state.digest(), "format": SNAPSHOT_FORMAT,
-                                   "verdicts": dict(state.verdicts),
-                                   "deferral": (None if state.deferral is None
-                                                else state.deferral.state.encode()),
-                                   "state": encode_snapshot(state.map.snapshot())}, now,
-                  state.seq)
-        self._flush(self._fsync)
-    def close(self) -> None:
-        """Write the summary and footer and close the file (idempotent)."""
-        if self.closed:
+    def snapshot(self, state: MapState, reason: str = "periodic") -> None:
+        """Record ``state``'s whole map (versioned, with its digest and seq), the request ids
+        it remembers and, when the file starts from this snapshot (a split file's first
+        record, a restored server's first), its retract window if that reaches back before it
+        (:mod:`mcsm.carry`); flush it. ``--restore`` starts from
+        the latest one plus the inputs after it. A second snapshot of the same seq in one
+        file is skipped (a split's first snapshot and a periodic one can coincide)."""
+        first = state.name not in self._snap_seq and state.name not in self._has_inputs
+        if self._snap_seq.get(state.name) == state.seq:
             return
-        self.closed = True
+        now = time.time_ns()
+        rec: dict[str, Any] = {
+            "map": state.name, "seq": state.seq, "digest": state.digest(),
+            "format": SNAPSHOT_FORMAT, "reason": reason, "verdicts": dict(state.verdicts),
+            "deferral": (None if state.deferral is None else state.deferral.state.encode()),
+            "ids": encode_ids(state.id_columns()),
+            "state": encode_snapshot(state.map.snapshot())}
+        if first and state.history.window_start < state.seq:
+            window = encode_window(state.history)
+            if window is not None:
+                rec["window"] = window
+            else:
+                log.warning("map %r: its retract window holds inputs applied without their "
+                            "bytes; %s replayed alone starts its window at seq %d",
+                            state.name, self.path, state.seq)
+        self._add(TOPIC_SNAPSHOT, rec, now, state.seq)
+        self._snap_seq[state.name] = state.seq
+        self._flush(self._fsync)
+        del rec
+        _trim_heap()
+
+    def _split_due(self) -> bool:
+        if not self.splitting:
+            return False
+        size = self._size()
+        if size - self._start_size < self._start_size:  # fewer input bytes than snapshots
+            return False
+        if self.split_bytes and size >= self.split_bytes:
+            return True
+        return bool(self.split_s) and time.monotonic() - self._opened >= self.split_s
+
+    def _size(self) -> int:
+        pos = getattr(self._w, "_pos", None)
+        return int(pos) if pos is not None else int(self._fh.tell())
+
+    def split(self) -> None:
+        """Close this file (a ``split`` checkpoint per map, the summary) and start the next:
+        every map's config and a snapshot (``reason: split``)."""
+        for name, st in self._states.items():
+            self.checkpoint(name, st.seq, st.digest(), "split")
+        self._close_file()
+        self.index += 1
+        self._file_open = False
+        self._open(split_name(self.base, self.index))
+        for rec in self._configs.values():
+            self._add(TOPIC_CONFIG, {**rec, "time_ns": time.time_ns()}, time.time_ns(), 0)
+        for st in self._states.values():
+            self.snapshot(st, reason="split")
+        self._start_size = self._size()
+        log.info("recording continues in %s (file %d of set %s)", self.path, self.index,
+                 self.set_id)
+
+    def _close_file(self) -> None:
+        """Summary, footer, fsync, close. A failure leaves the file cut (no summary) and is
+        raised after the file was closed."""
         try:
+            if getattr(self._w, "failed", False):
+                raise OSError(f"{self.path}: an earlier write failed; the file ends after "
+                              "its last complete record")
             self._w.finish()
             self._fh.flush()
             os.fsync(self._fh.fileno())
         finally:
-            self._fh.close()
+            close_spill = getattr(self._w, "close_spill", None)
+            if close_spill is not None:
+                close_spill()
+            try:
+                self._fh.close()
+            except OSError as exc:
+                log.error("closing %s: %s", self.path, exc)
+
+    def close(self) -> None:
+        """Write the summary and footer and close the file (idempotent).
+
+        Raises
+        ------
+        OSError
+            If that fails (full disk): the file is closed anyway and left cut, with every
+            complete record before (``mcsm recover`` indexes it).
+        """
+        if self.closed:
+            return
+        self.closed = True
+        if self._file_open:
+            self._file_open = False
+            self._close_file()
 
 
 # --------------------------------------------------------------------------------------------
@@ -731,6 +965,8 @@ class ReplayReport:
     library: str = ""
     #: arithmetic version each map was recorded with (1 when the recording does not say)
     arithmetic_versions: dict[str, int] = field(default_factory=dict)
+    #: the files read, in order (a split recording read from a snapshot skips the first ones)
+    files: list[str] = field(default_factory=list)
 
     @property
     def identical(self) -> bool:
@@ -746,16 +982,141 @@ class ReplayReport:
         return {name: st.map.state_digest() for name, st in self.states.items()}
 
 
-def replay(path: str | os.PathLike[str], *, sink: Recorder | None = None,
+PathArg = str | os.PathLike[str]
+
+
+def _path_list(path: PathArg | Sequence[PathArg]) -> list[Path]:
+    if isinstance(path, (str, os.PathLike)):
+        return [Path(path)]
+    paths = [Path(p) for p in path]
+    if not paths:
+        raise RecordingError("", "no recording given")
+    return paths
+
+
+class _Chain:
+    """The records of several files of a split recording, in order, as one stream.
+
+    A file other than the last must be complete: reading stops at the first one that is not
+    (``tail_error`` and ``damage`` then name it). Afterwards ``complete``, ``cut``,
+    ``damage`` and ``tail_error`` describe the set as :class:`RecordingReader` describes one
+    file."""
+
+    def __init__(self, paths: list[Path],
+                 progress: Callable[[int, int], None] | None = None) -> None:
+        self.paths = paths
+        self.total = sum(p.stat().st_size for p in paths)
+        self.progress = progress
+        self.reader: RecordingReader | None = None
+        self.complete = False
+        self.damage: str | None = None
+        self.tail_error: str | None = None
+        self.library = ""
+
+    @property
+    def cut(self) -> bool:
+        return not self.complete and self.damage is None and self.tail_error is not None
+
+    @property
+    def arithmetic_version(self) -> int:
+        return self.reader.arithmetic_version if self.reader is not None \
+            else LEGACY_ARITHMETIC_VERSION
+
+    def __iter__(self) -> Iterator[RecordItem]:
+        done = 0
+        for k, path in enumerate(self.paths):
+            def report(n: int, _total: int, base: int = done) -> None:
+                if self.progress is not None:
+                    self.progress(base + n, self.total)
+
+            reader = RecordingReader(path, report if self.progress is not None else None)
+            self.reader = reader
+            yield from reader
+            if k == 0:
+                self.library = reader.library
+            done += reader.size
+            last = k == len(self.paths) - 1
+            self.complete, self.damage = reader.complete, reader.damage
+            self.tail_error = reader.tail_error
+            if not reader.complete:
+                if not last:
+                    where = f"{path.name} (file {k + 1} of {len(self.paths)})"
+                    self.tail_error = f"{where}: {reader.tail_error}"
+                    self.damage = None if reader.damage is None else f"{where}: {reader.damage}"
+                return
+
+
+@dataclass
+class _Start:
+    """Where ``--restore`` starts one map: a snapshot's seq and what its retract window
+    (carried or not) covers."""
+
+    seq: int
+    window_ids: frozenset[str]
+
+
+def _start_points(paths: list[Path]) -> tuple[int, dict[str, int]]:
+    """For a replay from snapshots: the first file to read and, per map, the snapshot to
+    start from: the latest one such that every later retract or reinstate targets an update
+    after it or in the window it carries (a target before it could not be found). Files are
+    read from the last one back, only as far as needed."""
+    snaps: dict[str, list[_Start]] = {}  # map -> candidates, latest first
+    retracts: dict[str, list[tuple[int, str]]] = {}  # map -> (seq, target)
+    update_seq: dict[tuple[str, str], int] = {}  # (map, update id) -> seq
+    maps: set[str] = set()
+    chosen: dict[str, int] = {}
+    for k in range(len(paths) - 1, -1, -1):
+        here: dict[str, list[_Start]] = {}
+        for item in RecordingReader(paths[k]):
+            d = item.data
+            name = d.get("map")
+            if not isinstance(name, str):
+                continue
+            if item.topic == TOPIC_CONFIG:
+                maps.add(name)
+            elif item.topic == TOPIC_SNAPSHOT:
+                w = d.get("window")
+                ids = frozenset(str(e.get("id")) for e in w.get("log", [])
+                                if isinstance(e, dict)) if isinstance(w, dict) else frozenset()
+                here.setdefault(name, []).append(_Start(int(d.get("seq", 0)), ids))
+            elif item.topic in (INPUT_TOPICS["update"],):
+                update_seq[(name, str(d.get("id")))] = int(d.get("seq", 0))
+            elif TOPIC_OPS.get(item.topic) in ("retract", "reinstate"):
+                try:
+                    target = wire.unpack(bytes(d["request"])).get("target")
+                except (McsmError, KeyError, TypeError):
+                    continue
+                retracts.setdefault(name, []).append((int(d.get("seq", 0)), str(target)))
+        for name, cands in here.items():
+            snaps.setdefault(name, [])[0:0] = cands
+        chosen = {}
+        for name in maps:
+            for cand in reversed(snaps.get(name, [])):
+                if all(update_seq.get((name, t), -1) > cand.seq or t in cand.window_ids
+                       for r, t in retracts.get(name, []) if r > cand.seq):
+                    chosen[name] = cand.seq
+                    break
+        if maps and set(chosen) == maps:
+            return k, chosen
+    return 0, chosen
+
+
+def replay(path: PathArg | Sequence[PathArg], *, sink: Recorder | None = None,
            progress: Callable[[int, int], None] | None = None,
-           lru_size: int = DEFAULT_LRU, server_id: str = "",
-           stop_after: int | None = None, from_snapshot: bool = False) -> ReplayReport:
-    """Rebuild every map of a recording and check its digests at every checkpoint and
-    snapshot.
+           lru_size: int = DEFAULT_LRU, id_ttl_s: float = DEFAULT_ID_TTL_S,
+           server_id: str = "", stop_after: int | None = None,
+           from_snapshot: bool = False, device: object = "cpu") -> ReplayReport:
+    """Rebuild every map of a recording (one file, or the files of a split recording in set
+    order: :func:`mcsm.recset.resolve`) and check its digests at every checkpoint and
+    snapshot. ``device``: where the rebuilt maps keep their edges (``StochasticMap``'s
+    argument; the digests are the same on every device).
 
     With ``from_snapshot`` (``mcsm serve --restore``), each map starts from its latest
-    snapshot in the file (verified by its digest) and only the inputs after it are applied;
-    a sink then receives that snapshot and the tail, so the new file replays on its own.
+    snapshot (verified by its digest; with the request ids and, if it carries one, the
+    retract window it records) and only the inputs after it are applied; an earlier snapshot
+    is taken when a later retract targets an update before the latest. Files before the one
+    holding that snapshot are not read. A sink then receives that snapshot and the tail, so
+    the new file replays on its own.
 
     A map recorded by another arithmetic version (:data:`mcsm.core.ARITHMETIC_VERSION`) is
     rebuilt with this core's arithmetic, and its checkpoints are not compared (they cannot
@@ -764,10 +1125,12 @@ def replay(path: str | os.PathLike[str], *, sink: Recorder | None = None,
 
     Parameters
     ----------
-    path : the recording (complete, cut or damaged: replay stops at the first cut or damage)
+    path : the recording, or the files of a split recording in order (complete, cut or
+        damaged: replay stops at the first cut or damage)
     sink : if given, every config, input and checkpoint is written again into this recorder
         (used by ``mcsm serve --restore``: the new file replays on its own)
-    progress : called with (bytes read, file size) at most ten times a second
+    progress : called with (bytes read, bytes of all files) at most ten times a second
+    lru_size, id_ttl_s : how many request ids each map remembers, and how long
     stop_after : stop after this many inputs (all maps together), e.g. to inspect a past state
 
     Returns
@@ -781,13 +1144,15 @@ def replay(path: str | os.PathLike[str], *, sink: Recorder | None = None,
         If the file is not a readable mcsm recording.
     """
     t0 = time.perf_counter()
-    rep = ReplayReport(path=str(path))
+    paths = _path_list(path)
+    rep = ReplayReport(path=str(paths[0]) if len(paths) == 1
+                       else f"{paths[0]} .. {paths[-1].name} ({len(paths)} files)")
     start: dict[str, int] = {}  # map -> seq of the snapshot to start from
+    first = 0
     if from_snapshot:
-        for item in RecordingReader(path):
-            if item.topic == TOPIC_SNAPSHOT and isinstance(item.data.get("map"), str):
-                start[item.data["map"]] = int(item.data.get("seq", 0))
-    reader = RecordingReader(path, progress)
+        first, start = _start_points(paths)
+    rep.files = [str(p) for p in paths[first:]]
+    reader = _Chain(paths[first:], progress)
     for item in reader:
         if stop_after is not None and rep.n_inputs >= stop_after:
             break
@@ -796,21 +1161,24 @@ def replay(path: str | os.PathLike[str], *, sink: Recorder | None = None,
             rep.first_time_ns = item.log_time_ns
         rep.last_time_ns = item.log_time_ns
         name = d.get("map")
+        src = reader.reader.path if reader.reader is not None else paths[0]
         if not isinstance(name, str):
-            raise RecordingError(str(path), f"record on {item.topic} without a map name")
+            raise RecordingError(str(src), f"record on {item.topic} without a map name")
         if item.topic == TOPIC_CONFIG:
             if name in rep.states:
-                continue  # a map's config is written once; ignore repeats
+                continue  # a map's config is written once per file; ignore repeats
             try:
-                smap = StochasticMap.from_options(dict(d["options"]))
+                smap = StochasticMap.from_options(dict(d["options"]), device=device)
                 defer = DeferOptions.from_dict(d.get("gate_defer"))  # absent: no deferral
+                window = d.get("retract_window_bytes")  # absent: unbounded (older files)
             except (McsmError, KeyError, TypeError, ValueError) as exc:
-                raise RecordingError(str(path), f"bad options for map {name!r}: {exc}"
+                raise RecordingError(str(src), f"bad options for map {name!r}: {exc}"
                                      ) from None
-            st = MapState(name, smap, lru_size,
+            st = MapState(name, smap, lru_size, id_ttl_s,
                           snapshot_every=int(d.get("snapshot_every", DEFAULT_SNAPSHOT_EVERY)),
                           snapshots_kept=int(d.get("snapshots_kept", DEFAULT_SNAPSHOTS_KEPT)),
-                          gate_defer=defer)
+                          gate_defer=defer,
+                          retract_window_bytes=None if window is None else int(window))
             rep.states[name] = st
             rep.configs[name] = dict(d)
             version = d.get("arithmetic_version", reader.arithmetic_version)
@@ -818,14 +1186,14 @@ def replay(path: str | os.PathLike[str], *, sink: Recorder | None = None,
             if version != ARITHMETIC_VERSION:
                 log.warning("%s: map %r was recorded by arithmetic version %s; this mcsm "
                             "computes with version %d: its checkpoints are not compared",
-                            path, name, version, ARITHMETIC_VERSION)
+                            src, name, version, ARITHMETIC_VERSION)
             if sink is not None:
                 sink.config(st, int(d.get("checkpoint_every", 100)), server_id=server_id,
-                            restored_from=str(path))
+                            restored_from=str(rep.path))
             continue
         st_or_none = rep.states.get(name)
         if st_or_none is None:
-            raise RecordingError(str(path), f"record for map {name!r} before its config")
+            raise RecordingError(str(src), f"record for map {name!r} before its config")
         st = st_or_none
         if item.topic == TOPIC_SNAPSHOT:
             seq = int(d["seq"])
@@ -833,14 +1201,11 @@ def replay(path: str | os.PathLike[str], *, sink: Recorder | None = None,
             if s0 is not None and seq < s0:
                 continue  # an earlier snapshot than the one this replay starts from
             if seq == s0 or st.seq == 0 < seq:
-                # start here: the inputs before were skipped (or are not in this file)
+                # start here: the inputs before were skipped (or are not in these files)
                 try:
-                    snap = decode_snapshot(d["state"], st.n_samples)
-                    dfr = d.get("deferral")
-                    st.restore(seq, StochasticMap.from_snapshot(snap), d.get("verdicts", {}),
-                               None if dfr is None else DeferState.decode(dfr, st.n_samples))
+                    _load_snapshot(st, d, device)
                 except (McsmError, KeyError, TypeError, ValueError) as exc:
-                    raise RecordingError(str(path), f"unreadable snapshot of map {name!r} "
+                    raise RecordingError(str(src), f"unreadable snapshot of map {name!r} "
                                          f"at seq {seq}: {exc}") from None
                 rep.snapshots_loaded += 1
             elif seq != st.seq:
@@ -857,7 +1222,7 @@ def replay(path: str | os.PathLike[str], *, sink: Recorder | None = None,
                 rep.checkpoints_ok += 1
             rep.checkpoints.append(Checkpoint(name, seq, str(d["digest"]), "snapshot"))
             if sink is not None:
-                sink.snapshot(st)
+                sink.snapshot(st, reason=str(d.get("reason", "periodic")))
             continue
         if item.topic == TOPIC_CHECKPOINT and name in start and st.seq < start[name]:
             continue  # before the snapshot this replay starts from is loaded
@@ -879,12 +1244,12 @@ def replay(path: str | os.PathLike[str], *, sink: Recorder | None = None,
                                   f"(recorded {cp.digest[:16]}..., replayed {got[:16]}...)")
                 break
             rep.checkpoints_ok += 1
-            if sink is not None:
+            if sink is not None and cp.reason != "split":  # the sink splits on its own
                 sink.checkpoint(name, cp.seq, cp.digest, cp.reason)
             continue
         op = TOPIC_OPS.get(item.topic)
         if op is None:
-            log.warning("%s: ignoring records on unknown topic %s", path, item.topic)
+            log.warning("%s: ignoring records on unknown topic %s", src, item.topic)
             continue
         seq = int(d["seq"])
         if seq <= start.get(name, -1):  # before the snapshot: remember the id, skip the work
@@ -901,8 +1266,9 @@ def replay(path: str | os.PathLike[str], *, sink: Recorder | None = None,
                               "(gap or reordering)")
             break
         try:
-            req = decode_input(op, bytes(d["request"]), st.n_samples)
-            ack = st.apply(op, req, time_ns=int(d["recv_ns"]))
+            payload = bytes(d["request"])
+            req = decode_input(op, payload, st.n_samples)
+            ack = st.apply(op, req, time_ns=int(d["recv_ns"]), payload=payload)
         except McsmError as exc:
             rep.divergence = (f"map {name!r}: input seq {seq} ({op}) was refused on replay: "
                               f"{type(exc).__name__}: {exc}")
@@ -911,7 +1277,7 @@ def replay(path: str | os.PathLike[str], *, sink: Recorder | None = None,
         rep.ops[op] += 1
         if sink is not None:
             sink.input(op, name, ack.seq, int(d["recv_ns"]), str(d.get("sender", "")),
-                       str(d.get("id", "")), bytes(d["request"]))
+                       str(d.get("id", "")), payload)
     rep.complete = reader.complete
     stopped_early = rep.divergence is not None or stop_after is not None
     rep.cut = reader.cut and not stopped_early
@@ -920,6 +1286,27 @@ def replay(path: str | os.PathLike[str], *, sink: Recorder | None = None,
     rep.library = reader.library
     rep.elapsed_s = time.perf_counter() - t0
     return rep
+
+
+def _load_snapshot(st: MapState, d: dict[str, Any], device: object = "cpu") -> None:
+    """Continue ``st`` from the snapshot record ``d``: its map (its edges on ``device``),
+    deferral state, remembered ids (when recorded) and retract window (when carried).
+
+    Raises
+    ------
+    McsmError, KeyError, TypeError, ValueError
+        If the record does not decode.
+    """
+    snap = decode_snapshot(d["state"], st.n_samples)
+    dfr = d.get("deferral")
+    ids = d.get("ids")
+    st.restore(int(d["seq"]), StochasticMap.from_snapshot(snap, device=device),
+               d.get("verdicts", {}),
+               None if dfr is None else DeferState.decode(dfr, st.n_samples),
+               None if ids is None else decode_ids(ids))
+    window = d.get("window")
+    if window is not None:
+        decode_window(window, st.history, st.n_samples)
 
 
 # --------------------------------------------------------------------------------------------

@@ -203,6 +203,7 @@ class Replica:
                 "disk_snapshot_every": self.disk_snapshot_every,
                 "snapshot_every": st.history.snapshot_every,
                 "snapshots_kept": st.history.snapshots_kept,
+                "retract_window_bytes": st.history.max_bytes,
                 "gate_defer": (None if st.deferral is None
                                else st.deferral.options.to_dict())}
 
@@ -398,7 +399,8 @@ class Replica:
         st = MapState(self.name, StochasticMap.from_options(dict(cfg["options"])), o.lru_size,
                       o.id_ttl_s, snapshot_every=int(cfg["snapshot_every"]),
                       snapshots_kept=int(cfg["snapshots_kept"]),
-                      gate_defer=DeferOptions.from_dict(cfg.get("gate_defer")))
+                      gate_defer=DeferOptions.from_dict(cfg.get("gate_defer")),
+                      retract_window_bytes=cfg.get("retract_window_bytes"))
         rec = self.server.recorder
         if rec is not None and self.recorded < 0:
             rec.config(st, self.checkpoint_every, server_id=self.server.server_id)
@@ -445,7 +447,7 @@ class Replica:
         assert st is not None
         try:
             req = decode_input(e.op, e.payload, st.n_samples)
-            ack = st.apply(e.op, req, time_ns=e.recv_ns)
+            ack = st.apply(e.op, req, time_ns=e.recv_ns, payload=e.payload)
         except McsmError as exc:
             self._stop_following(f"input seq {e.seq} ({e.op}) was refused here: "
                                  f"{type(exc).__name__}: {exc}")
@@ -508,7 +510,8 @@ class Replica:
             self.recorded = -1
             self.dirty = False
             return
-        rep = replay(rec.path, from_snapshot=True, lru_size=self.server.opts.lru_size)
+        # every file of a split recording (replay starts from the one with the latest snapshot)
+        rep = replay(list(rec.paths), from_snapshot=True, lru_size=self.server.opts.lru_size)
         st = rep.states.get(self.name)
         if rep.divergence is not None or st is None or st.seq != self.recorded:
             self._stop_following(f"its own recording does not rebuild it (at seq "

@@ -7,14 +7,17 @@ Threads and ownership:
   map, on any of its keys, is decoded and queued in the order it arrived (a short ``remove``
   cannot overtake a long ``update``). The callback routes on the concrete key (a wildcard key
   is refused), decodes and checks the payload with :mod:`mcsm.wire`, checks a namespaced key's
-  frames (``update/<ns>``, ``remove/<ns>``), and puts the request on a bounded queue. A full
-  queue is answered at once with a ``Busy`` error (a ``LimitExceeded``): the client may retry
-  later with the same request id.
+  frames (``update/<ns>``, ``remove/<ns>``), and puts the request on the worker's queue
+  (:mod:`mcsm.lanes`): changes on the write lane, reads on the read lane, each bounded in
+  count (``--queue-size``) and in payload bytes (``--queue-bytes``). A full lane is answered
+  at once with a ``Busy`` error (a ``LimitExceeded``): the client may retry later with the
+  same request id.
 * One worker thread owns every :class:`~mcsm.state.MapState` and the
   :class:`~mcsm.recording.Recorder`. It takes requests in arrival order, assigns each applied
   operation the map's next sequence number, applies it through the core, records it (flushed),
   and only then acknowledges and publishes the event. Queries, info and exports go through the
-  same worker, so they see a consistent state between two operations.
+  same worker, so they see a consistent state between two operations; the worker takes them
+  before the next queued write, so a flood of updates does not delay them.
 
 Who may write what: the Zenoh access-control list (``deploy/``) lets a robot's identity send
 requests only on its own ``update/<robot>`` and ``remove/<robot>`` keys; the server refuses an
@@ -34,7 +37,6 @@ every acknowledged input).
 from __future__ import annotations
 
 import logging
-import queue
 import threading
 import time
 from collections.abc import Callable
@@ -48,7 +50,8 @@ from mcsm import ops, wire
 from mcsm.core.smap import StochasticMap
 from mcsm.deferral import DeferOptions
 from mcsm.errors import Busy, InternalError, McsmError, NotReplicated
-from mcsm.history import DEFAULT_SNAPSHOT_EVERY, DEFAULT_SNAPSHOTS_KEPT
+from mcsm.history import DEFAULT_SNAPSHOT_EVERY, DEFAULT_SNAPSHOTS_KEPT, DEFAULT_WINDOW_BYTES
+from mcsm.lanes import Full, Lanes
 from mcsm.recording import (
     Recorder,
     RecordingError,
@@ -74,9 +77,18 @@ class ServerOptions:
     map_options: dict[str, Any] = field(default_factory=lambda: {"n_samples": 1000})
     """Constructor arguments of new maps (:func:`new_map`; the gate defaults to 0.99)."""
     record: Path | None = None
-    restore: Path | None = None
+    restore: Path | list[Path] | None = None
+    """A recording, or the files of a split recording in set order (:func:`mcsm.recset.resolve`)."""
     checkpoint_every: int = 100
     queue_size: int = 1024
+    queue_bytes: int = 128 * 1024 * 1024
+    """Payload bytes the write lane (and the read lane) holds at most before ``Busy``."""
+    retract_window_bytes: int = DEFAULT_WINDOW_BYTES
+    """Bytes each map's retract window holds at most (:mod:`mcsm.history`)."""
+    split_bytes: int = 0
+    """Start a new recording file once the current one holds this many bytes (0: never)."""
+    split_s: float = 0.0
+    """Start a new recording file once the current one is this many seconds old (0: never)."""
     lru_size: int = DEFAULT_LRU
     id_ttl_s: float = DEFAULT_ID_TTL_S
     fsync: bool = False
@@ -92,6 +104,10 @@ class ServerOptions:
     """Maps this server follows as a hot standby (:mod:`mcsm.replication`; needs ``nats``)."""
     nats: NatsOptions | None = None
     """``--nats``: replicate every map through this NATS JetStream cluster."""
+    device: str = "cpu"
+    """``--device``: where this server's maps keep their edges (``cpu`` or ``cuda``; not a
+    map option: digests are the same on every device). A standby's map, and one rebuilt
+    after a demotion (:mod:`mcsm.replication`), stays on the CPU."""
 
 
 @dataclass
@@ -132,7 +148,7 @@ class Server:
         self.states: dict[str, MapState] = {}
         self.keys: dict[str, wire.Keys] = {}
         self.recorder: Recorder | None = None
-        self._queue: queue.Queue[Any] = queue.Queue(maxsize=max(1, options.queue_size))
+        self._queue = Lanes(options.queue_size, options.queue_bytes)
         self._entities: list[Any] = []
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._worker: threading.Thread | None = None
@@ -167,25 +183,30 @@ class Server:
                             "cannot be combined with --restore")
         if o.nats is None:  # a replicated map is refused by its lease (Replica.start)
             self.check_not_served(list(o.maps))
+        restore = ([] if o.restore is None else
+                   [Path(o.restore)] if isinstance(o.restore, (str, Path)) else list(o.restore))
         if o.record is not None:
-            if o.restore is not None and Path(o.record).resolve() == Path(o.restore).resolve():
+            if any(Path(o.record).resolve() == p.resolve() for p in restore):
                 raise RecordingError(str(o.record), "--record must differ from --restore "
                                      "(the restored server writes a new, self-contained file)")
-            self.recorder = Recorder(o.record, fsync=o.fsync)
-        if o.restore is not None:
-            rep = replay(o.restore, sink=self.recorder, from_snapshot=True, progress=self._progress,
-                         lru_size=o.lru_size, server_id=self.server_id)
+            self.recorder = Recorder(o.record, fsync=o.fsync, split_bytes=o.split_bytes,
+                                     split_s=o.split_s)
+        if restore:
+            rep = replay(restore, sink=self.recorder, from_snapshot=True, progress=self._progress,
+                         lru_size=o.lru_size, id_ttl_s=o.id_ttl_s, server_id=self.server_id,
+                         device=o.device)
             if rep.divergence is not None:
                 if self.recorder is not None:  # it only holds a copy of the old file's prefix
                     self.recorder.close()
-                    self.recorder.path.unlink(missing_ok=True)
+                    for p in self.recorder.paths:
+                        p.unlink(missing_ok=True)
                 raise RecordingError(str(o.restore), f"replay diverged: {rep.divergence}")
             self.states.update(rep.states)
             for st in self.states.values():
                 st.id_ttl_s = o.id_ttl_s
-            log.info("restored %d inputs of %d map(s) from %s (%s)", rep.n_inputs,
-                     len(rep.states), o.restore,
-                     "complete" if rep.complete else f"truncated: {rep.tail_error}")
+            log.info("restored %d map(s) from %s (%s): %s", len(rep.states), o.restore,
+                     "complete" if rep.complete else f"truncated: {rep.tail_error}",
+                     restore_summary(rep))
             for st in self.states.values():
                 if self.recorder is not None:
                     self.recorder.checkpoint(st.name, st.seq, st.digest(), "restore")
@@ -201,9 +222,10 @@ class Server:
                     log.warning("map %r: using the restored --gate-defer policy %s", name,
                                 None if dfr is None else dfr.options.to_dict())
                 continue
-            st = MapState(name, new_map(o.map_options), o.lru_size,
+            st = MapState(name, new_map(o.map_options, o.device), o.lru_size,
                           o.id_ttl_s, snapshot_every=o.snapshot_every,
-                          snapshots_kept=o.snapshots_kept, gate_defer=o.gate_defer)
+                          snapshots_kept=o.snapshots_kept, gate_defer=o.gate_defer,
+                          retract_window_bytes=o.retract_window_bytes)
             self.states[name] = st
             if self.recorder is not None and o.nats is None:
                 self.recorder.config(st, o.checkpoint_every, server_id=self.server_id)
@@ -295,7 +317,7 @@ class Server:
         for r in self.replicas.values():
             r.stop_loop()
         if self._worker is not None and self._worker.is_alive():
-            self._queue.put(_STOP)
+            self._queue.put(_STOP, force=True)
             self._worker.join(timeout=60.0)
             if self._worker.is_alive():
                 log.error("worker did not stop within 60 s")
@@ -305,15 +327,22 @@ class Server:
             self.link.close()
         undeclare_all(list(self._publishers.values()))
         if self.recorder is not None and not self.recorder.closed:
-            if not self.failed.is_set():
-                for st in self.states.values():
-                    self.recorder.checkpoint(st.name, st.seq, st.digest(), "close")
-                for r in self.replicas.values():
-                    if r.st is not None and r.role == "standby" and not r.dirty:
-                        self.recorder.checkpoint(r.name, r.st.seq, r.st.digest(), "close")
-            self.recorder.close()
-            log.info("recording closed: %s (%d inputs)", self.recorder.path,
-                     self.recorder.n_inputs)
+            try:
+                if not self.failed.is_set():
+                    for st in self.states.values():
+                        self.recorder.checkpoint(st.name, st.seq, st.digest(), "close")
+                    for r in self.replicas.values():
+                        if r.st is not None and r.role == "standby" and not r.dirty:
+                            self.recorder.checkpoint(r.name, r.st.seq, r.st.digest(), "close")
+                self.recorder.close()
+                log.info("recording closed: %s (%d inputs)", self.recorder.path,
+                         self.recorder.n_inputs)
+            except (OSError, ValueError) as exc:  # a full disk: the file stays cut, complete
+                self.recorder.closed = True       # up to its last record
+                self.failed.set()
+                log.critical("could not close the recording %s cleanly: %s; it ends after its "
+                             "last complete record (mcsm recover indexes it)",
+                             self.recorder.path, exc)
 
     # ---------------------------------------------------------------- zenoh callbacks
     def _on_query(self, k: wire.Keys, st: MapState, query: zenoh.Query) -> None:
@@ -336,9 +365,9 @@ class Server:
         sender = getattr(req, "sender", "") or _source(query)
         item = _Item(op, st, query, key, req, recv_ns, payload, sender, ns)
         try:
-            self._queue.put_nowait(item)
-        except queue.Full:
-            self._reject(st, query, Busy(self._queue.qsize(), self._queue.maxsize),
+            self._queue.put(item, len(payload), read=not operation.changes_state)
+        except Full as full:
+            self._reject(st, query, Busy(full.value, full.limit, full.what),
                          getattr(req, "request_id", ""), op)
             query.drop()
 
@@ -356,6 +385,8 @@ class Server:
     def _run(self) -> None:
         while True:
             item = self._queue.get()
+            if item is None:
+                continue
             if item is _STOP:
                 return
             if isinstance(item, _Task):
@@ -383,8 +414,8 @@ class Server:
     def submit(self, run: Callable[[], Any], done: Callable[[], None] | None = None) -> bool:
         """Queue ``run`` (then ``done``) for the worker; False if the queue is full."""
         try:
-            self._queue.put_nowait(_Task(run, done))
-        except queue.Full:
+            self._queue.put(_Task(run, done))
+        except Full:
             return False
         return True
 
@@ -397,10 +428,7 @@ class Server:
             If the worker did not run it within ``timeout_s`` (or it raised).
         """
         task = _Task(run)
-        try:
-            self._queue.put(task, timeout=timeout_s)
-        except queue.Full:
-            raise McsmError("the worker's queue stayed full") from None
+        self._queue.put(task, force=True)  # the server's own work: never refused
         if not task.finished.wait(timeout_s):
             raise McsmError(f"the worker did not get to it within {timeout_s:g} s")
         if task.error is not None:
@@ -441,6 +469,11 @@ class Server:
         except zenoh.ZError as exc:
             log.warning("could not publish the takeover event: %s", exc)
         return True
+
+    @property
+    def recording_path(self) -> str:
+        """The recording file written now (``-`` without one)."""
+        return str(self.recorder.path) if self.recorder is not None else "-"
 
     def demote(self, r: Replica, why: str) -> None:
         """On the worker: stop serving ``r``'s map (the lease is lost, or the log refused an
@@ -528,7 +561,8 @@ class Server:
             return
         try:
             operation.check_namespace_map(st, req, item.namespace, item.key)
-            ack = st.apply(item.op, req, time_ns=item.recv_ns, fingerprint=fingerprint)
+            ack = st.apply(item.op, req, time_ns=item.recv_ns, fingerprint=fingerprint,
+                           payload=item.payload)
         except McsmError as exc:
             self._reject(st, item.query, exc, req.request_id, item.op)
             return
@@ -554,7 +588,7 @@ class Server:
                 k = self.opts.disk_snapshot_every
                 if k > 0 and ack.seq % k == 0:
                     self.recorder.snapshot(st)
-        except (OSError, ValueError) as exc:
+        except (OSError, ValueError, RecordingError) as exc:
             # The map holds an input the file does not: stop rather than acknowledge it.
             log.critical("recording failed at seq %d of map %r: %s; stopping", ack.seq,
                          st.name, exc)
@@ -581,6 +615,7 @@ class Server:
         """The info reply of one map (call from the worker, or when nothing else runs)."""
         m = st.map
         rep = self.replicas.get(st.name)
+        mem = m.memory()
         with self._reject_lock:
             rejected, by_error = st.rejected, dict(st.rejected_by_error)
         return wire.MapInfo(
@@ -593,7 +628,8 @@ class Server:
             queue_length=self._queue.qsize(),
             standbys=dict(rep.standbys) if rep is not None else {},
             replicas=self.link.opts.replicas if self.link is not None else 0,
-            epoch=rep.term if rep is not None else 0)
+            epoch=rep.term if rep is not None else 0,
+            device=m.device, device_bytes=mem["bytes"], device_free_bytes=mem.get("free", 0))
 
 
 def undeclare_all(entities: list[Any]) -> None:
@@ -607,12 +643,30 @@ def undeclare_all(entities: list[Any]) -> None:
     entities.clear()
 
 
-def new_map(map_options: dict[str, Any]) -> StochasticMap:
+def restore_summary(rep: Any) -> str:
+    """How each map of a ``--restore`` was rebuilt: ``map 'default': snapshot at seq 1000 +
+    332 inputs`` (the recording's state snapshot it started from, and the inputs applied after
+    it), or ``map 'm': 12 inputs`` when it had none."""
+    start: dict[str, int] = {}
+    for cp in rep.checkpoints:  # the first snapshot of each map is the one replay started from
+        if cp.reason == "snapshot":
+            start.setdefault(cp.map, cp.seq)
+    parts = []
+    for name, st in rep.states.items():
+        s0 = start.get(name)
+        if s0 is not None and rep.snapshots_loaded:
+            parts.append(f"map {name!r}: snapshot at seq {s0} + {st.seq - s0} inputs")
+        else:
+            parts.append(f"map {name!r}: {st.seq} inputs")
+    return "; ".join(parts) or "no map"
+
+
+def new_map(map_options: dict[str, Any], device: str = "cpu") -> StochasticMap:
     """A new map from the constructor arguments ``map_options`` (``n_samples`` and keywords):
     what is not given takes the constructor's default (the gate's: 0.99). Recorded options go
     through :meth:`StochasticMap.from_options` instead, where a missing gate means none."""
     o = dict(map_options)
-    return StochasticMap(int(o.pop("n_samples")), **o)
+    return StochasticMap(int(o.pop("n_samples")), **o, device=device)
 
 
 def _source(query: zenoh.Query) -> str:

@@ -9,7 +9,7 @@ The live server and replay (:func:`mcsm.recording.replay`) both apply inputs thr
 from __future__ import annotations
 
 import time
-from collections import Counter, OrderedDict
+from collections import Counter
 from dataclasses import replace
 from typing import Any
 
@@ -18,9 +18,11 @@ from mcsm.core.smap import StochasticMap
 from mcsm.deferral import DeferOptions, Deferral, DeferState
 from mcsm.errors import InvalidOperation, McsmError, RequestIdReused
 from mcsm.history import DEFAULT_SNAPSHOT_EVERY, DEFAULT_SNAPSHOTS_KEPT, History
+from mcsm.idmemory import IdColumns, IdMemory
 
 DEFAULT_LRU = 100_000
-"""Request ids (with their acks) each map remembers at most (about 60 MB at most)."""
+"""Request ids (with their acks) each map remembers at most (about 25 MB at most:
+:mod:`mcsm.idmemory`)."""
 DEFAULT_ID_TTL_S = 600.0
 """Seconds a request id is remembered (ten minutes: a server restart takes 1-8 s)."""
 
@@ -37,12 +39,16 @@ class MapState:
                  id_ttl_s: float = DEFAULT_ID_TTL_S, *,
                  snapshot_every: int = DEFAULT_SNAPSHOT_EVERY,
                  snapshots_kept: int = DEFAULT_SNAPSHOTS_KEPT,
-                 gate_defer: DeferOptions | None = None) -> None:
+                 gate_defer: DeferOptions | None = None,
+                 retract_window_bytes: int | None = None) -> None:
         self.name = name
         self.map = smap
         # --gate-defer: first closures of a revisit held until a second one agrees
         self.deferral = None if gate_defer is None else Deferral(gate_defer, smap.gate)
-        self.history = History(max(1, int(snapshot_every)), max(1, int(snapshots_kept)))
+        # --retract-window-bytes (None: unbounded, as in recordings made before the bound)
+        self.history = History(max(1, int(snapshot_every)), max(1, int(snapshots_kept)),
+                               None if retract_window_bytes is None
+                               else max(0, int(retract_window_bytes)))
         self.history.start(smap, 0, self._defer_state())
         # verdicts the last input changed: a retract's re-gated inputs, a decided held closure
         self.last_changed: dict[str, wire.Verdict] = {}
@@ -51,7 +57,7 @@ class MapState:
         self.lru_size = int(lru_size)
         self.id_ttl_s = float(id_ttl_s)
         # request id -> (ack, request fingerprint, receive time ns), oldest first
-        self._acks: OrderedDict[str, tuple[wire.Ack, str, int]] = OrderedDict()
+        self._acks = IdMemory(self.lru_size)
         self.rejected = 0
         self.rejected_by_error: Counter[str] = Counter()
         self.verdicts: Counter[str] = Counter()  # applied updates per verdict status
@@ -66,11 +72,11 @@ class MapState:
     def _forget(self, now_ns: int) -> None:
         """Drop ids older than ``id_ttl_s`` and beyond ``lru_size`` (oldest first)."""
         cutoff = now_ns - int(self.id_ttl_s * 1e9)
-        while self._acks:
-            _, (_, _, t_ns) = next(iter(self._acks.items()))
-            if t_ns >= cutoff and len(self._acks) <= self.lru_size:
+        while True:
+            t_ns = self._acks.oldest_time()
+            if t_ns is None or (t_ns >= cutoff and len(self._acks) <= self.lru_size):
                 break
-            self._acks.popitem(last=False)
+            self._acks.pop_oldest()
 
     def lookup(self, request_id: str, fingerprint: str | None = None,
                now_ns: int | None = None) -> wire.Ack | None:
@@ -95,9 +101,11 @@ class MapState:
         return replace(ack, duplicate=True)
 
     def apply(self, op: str, req: Any, *, time_ns: int | None = None,
-              fingerprint: str | None = None) -> wire.Ack:
+              fingerprint: str | None = None, payload: bytes | None = None) -> wire.Ack:
         """Apply one decoded input received at ``time_ns``; returns its ack (seq ``seq + 1``).
-        ``fingerprint`` is ``ops.fingerprint(op, req)`` if the caller has it.
+        ``fingerprint`` is ``ops.fingerprint(op, req)`` if the caller has it; ``payload`` (the
+        request's bytes, as recorded) lets the retract window keep those instead of the
+        decoded request, and a split recording carry the window (:meth:`Recorder.snapshot`).
 
         Raises
         ------
@@ -114,7 +122,8 @@ class MapState:
                                self.map.root(req.a), verdict=verdict)
             else:
                 ack = wire.Ack(req.request_id, self.seq + 1, op, r.kind, r.component,
-                               frames_added=tuple(r.frames_added), verdict=verdict)
+                               frames_added=tuple(r.frames_added), verdict=verdict,
+                               relin=None if r.relin is None else r.relin.to_dict())
             self.verdicts[verdict.status] += 1
             for decided in out.decided.values():  # a held closure decided now: was pending
                 self.verdicts["pending"] -= 1
@@ -129,19 +138,18 @@ class MapState:
             c = operation.change(self.map, req)
             ack = wire.Ack(req.request_id, self.seq + 1, op, c.kind, c.component,
                            frames_added=c.frames_added, frames_removed=c.frames_removed,
-                           verdict=c.verdict)
+                           verdict=c.verdict, relin=c.relin)
             if c.verdict is not None:
                 self.verdicts[c.verdict.status] += 1
         else:
             raise McsmError(f"{op!r} changes nothing: it is answered, not applied")
         self.seq = ack.seq
         t_ns = time.time_ns() if time_ns is None else int(time_ns)
-        self._acks.pop(req.request_id, None)
         fp = fingerprint if fingerprint is not None else ops.fingerprint(op, req)
-        self._acks[req.request_id] = (ack, fp, t_ns)
+        self._acks.put(req.request_id, ack, fp, t_ns)
         self._forget(t_ns)
         self.history.record(ack.seq, op, req.request_id, req, ack.verdict, self.map,
-                            self._defer_state())
+                            self._defer_state(), payload)
         return ack
 
     def _defer_state(self) -> DeferState | None:
@@ -152,17 +160,26 @@ class MapState:
         for rid, v in verdicts.items():
             hit = self._acks.get(rid)
             if hit is not None:
-                self._acks[rid] = (replace(hit[0], verdict=v), hit[1], hit[2])
+                self._acks.update(rid, replace(hit[0], verdict=v))
 
     def _retract(self, op: str, req: Any, retract: bool) -> wire.Ack:
         """Leave the update ``req.target`` out (``retract``) or put it back (reinstate):
         restore the last snapshot before it and apply every later input of the window again."""
+        if req.target not in self.history.by_id:
+            hit = self._acks.get(req.target)
+            if hit is not None and hit[0].seq <= self.history.window_start:
+                raise InvalidOperation(
+                    f"request {req.target!r} (seq {hit[0].seq}) fell out of the retract "
+                    f"window, which now holds the inputs after seq "
+                    f"{self.history.window_start} ({self.history.reach()}): it can no longer "
+                    "be retracted or reinstated")
         target = self.history.target(req.target, retract)
         before: dict[str, wire.Verdict | None] = {
             e.request_id: e.verdict for e in self.history.log if ops.get(e.op).retractable}
         held = None if self.deferral is None else self.deferral.pending_id()
-        smap, changed, commit, dfr = self.history.rebuild(target, retract, self.map.threads,
-                                                          self.deferral)
+        smap, changed, commit, dfr = self.history.rebuild(
+            target, retract, self.map.threads, self.deferral,
+            device="cpu" if self.map.backend is None else self.map.backend)
         self.map = smap
         self.deferral = dfr
         commit()
@@ -185,11 +202,15 @@ class MapState:
         return wire.Ack(req.request_id, self.seq + 1, op, op, None, verdict=target.verdict)
 
     def restore(self, seq: int, smap: StochasticMap, verdicts: dict[str, int],
-                defer: DeferState | None = None) -> None:
-        """Continue from a recorded snapshot: the map as it was after operation ``seq``, and
-        the deferral state then (``--gate-defer``: the held closure, if any)."""
+                defer: DeferState | None = None, ids: list[list[Any]] | None = None) -> None:
+        """Continue from a recorded snapshot: the map as it was after operation ``seq``, the
+        deferral state then (``--gate-defer``: the held closure, if any) and, when the snapshot
+        holds them, the request ids remembered then (:meth:`export_ids` rows; they replace
+        the ids remembered so far)."""
         smap.threads = self.map.threads
         self.map, self.seq = smap, int(seq)
+        if ids is not None:
+            self.import_ids(ids, replace_all=True)
         self.verdicts = Counter({str(k): int(v) for k, v in verdicts.items()})
         if self.deferral is not None:
             self.deferral = self.deferral.copy(defer or DeferState())
@@ -199,9 +220,11 @@ class MapState:
                                  stamp_ns=h.req.stamp_ns)
                 hit = self._acks.get(h.request_id)
                 if hit is None:  # its input is not in this file (a restored server's file)
-                    hit = (wire.Ack(h.request_id, h.seq, "update", "pending", None),
-                           ops.fingerprint("update", h.req), time.time_ns())
-                self._acks[h.request_id] = (replace(hit[0], verdict=v), hit[1], hit[2])
+                    self._acks.put(h.request_id, wire.Ack(h.request_id, h.seq, "update",
+                                                          "pending", None, verdict=v),
+                                   ops.fingerprint("update", h.req), time.time_ns())
+                else:
+                    self._acks.update(h.request_id, replace(hit[0], verdict=v))
         self.history.start(smap, self.seq, self._defer_state())
         self._digest = None
 
@@ -209,8 +232,7 @@ class MapState:
         """Remember the id of an input applied before a snapshot replay started from (so a
         retry of it is not applied twice); its ack is not known, only its seq and op."""
         ack = wire.Ack(req.request_id, int(seq), op, "restored", None)
-        self._acks.pop(req.request_id, None)
-        self._acks[req.request_id] = (ack, ops.fingerprint(op, req), int(time_ns))
+        self._acks.put(req.request_id, ack, ops.fingerprint(op, req), int(time_ns))
         self._forget(int(time_ns))
 
     def export_ids(self) -> list[list[Any]]:
@@ -219,15 +241,22 @@ class MapState:
         input applied before that snapshot is still recognised after a takeover)."""
         return [[rid, ack.seq, ack.op, fp, t] for rid, (ack, fp, t) in self._acks.items()]
 
-    def import_ids(self, rows: list[Any]) -> None:
-        """Remember the ids of :meth:`export_ids` (their acks say ``restored``)."""
+    def id_columns(self) -> IdColumns:
+        """The remembered ids, oldest first, as columns (:meth:`IdMemory.columns`): what a
+        recorded snapshot holds (:func:`mcsm.carry.encode_ids`)."""
+        return self._acks.columns()
+
+    def import_ids(self, rows: list[Any], *, replace_all: bool = False) -> None:
+        """Remember the ids of :meth:`export_ids` (their acks say ``restored``); with
+        ``replace_all``, instead of the ids remembered so far."""
+        if replace_all:
+            self._acks.clear()
         for row in rows:
             rid, seq, op, fp, t_ns = row
-            self._acks.pop(str(rid), None)
-            self._acks[str(rid)] = (wire.Ack(str(rid), int(seq), str(op), "restored", None),
-                                    str(fp), int(t_ns))
+            self._acks.put(str(rid), wire.Ack(str(rid), int(seq), str(op), "restored", None),
+                           str(fp), int(t_ns))
         while len(self._acks) > self.lru_size:
-            self._acks.popitem(last=False)
+            self._acks.pop_oldest()
 
     def verdict_of(self, request_id: str) -> wire.Ack:
         """The ack (with its current verdict) of a remembered request id.

@@ -29,6 +29,7 @@ import numpy as np
 import numpy.typing as npt
 
 from mcsm.core.at import QUAT_NORM_TOL as _CORE_QUAT_NORM_TOL
+from mcsm.core.at import quaternion_problem
 from mcsm.core.names import FRAME_RULE, NAMESPACE_RULE, is_frame_name, is_namespace
 from mcsm.errors import (
     BadMessage,
@@ -138,6 +139,10 @@ class Keys:
     @property
     def verdict(self) -> str:
         return self._k("verdict")
+
+    @property
+    def relinearize(self) -> str:
+        return self._k("relinearize")
 
     @property
     def events(self) -> str:
@@ -396,6 +401,17 @@ class RetractRequest:
 
 
 @dataclass(frozen=True)
+class RelinearizeRequest:
+    """Relinearise ``frame``'s component, or every component when ``frame`` is empty: solve
+    for the maximum a posteriori estimate of everything it has seen and redraw its samples
+    (:meth:`mcsm.core.smap.StochasticMap.relinearize`)."""
+
+    request_id: str
+    frame: str = ""
+    sender: str = ""
+
+
+@dataclass(frozen=True)
 class VerdictRequest:
     """Ask for the current verdict of the request ``target`` (a request id)."""
 
@@ -504,6 +520,8 @@ class Ack:
                                                         required=False))
     verdict: Verdict | None = field(default=None, metadata=wire_field(
         lambda v, name: Verdict.from_dict(v), pack=message_dict, required=False, omit=_is_none))
+    relin: dict[str, Any] | None = field(default=None, metadata=wire_field(
+        lambda v, name: check_map(v, name), pack=dict, required=False, omit=_is_none))
 
 
 def _check_mean(val: Any, name: str) -> Samples:
@@ -577,6 +595,13 @@ class MapInfo:
     epoch: int = field(default=0, metadata=wire_field(check_count, required=False))
     """The lease revision this primary took the map with: grows with every takeover (0: not
     replicated; docs/fleet.md)."""
+    device: str = field(default="cpu", metadata=wire_field(check_text(64), required=False))
+    """Where the map's edges live: ``cpu`` or ``cuda:K`` (``mcsm serve --device``)."""
+    device_bytes: int = field(default=0, metadata=wire_field(check_count, required=False))
+    """Bytes of the map's edges, flags and spare buffer where they live."""
+    device_free_bytes: int = field(default=0, metadata=wire_field(check_count,
+                                                                  required=False))
+    """On a GPU: device memory free when the info was taken (0 on the CPU)."""
 
     @property
     def n_frames(self) -> int:
@@ -608,6 +633,9 @@ class Event:
     digest: str | None = field(default=None, metadata=wire_field(check_str_or_nil))
     extra: dict[str, Any] = field(default_factory=dict, metadata=wire_field(
         check_map, pack=dict, required=False, omit=_is_empty))
+    request_id: str = field(default="", metadata=wire_field(
+        check_text(MAX_ID_CHARS), key="id", required=False, omit=_is_empty))
+    """The applied request's id (what ``retract``, ``reinstate`` and ``verdict`` take)."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -759,12 +787,13 @@ def unpack_array(obj: Any, fieldname: str, ndim: int, *, max_elems: int) -> Samp
 
 def check_quaternions(q: Samples, fieldname: str = "samples") -> None:
     """Every quaternion ``q[..., 0:4]`` must satisfy ``| |q|^2 - 1 | <= QUAT_NORM_TOL``."""
-    err = np.abs(np.einsum("...i,...i->...", q, q) - 1.0)
+    norm2 = np.einsum("...i,...i->...", q, q)
+    err = np.abs(norm2 - 1.0)
     if err.size and float(err.max()) > QUAT_NORM_TOL:
         idx = np.unravel_index(int(np.argmax(err)), err.shape)
-        raise InvalidSamples(
-            f"{fieldname}: quaternion of sample {tuple(int(i) for i in idx)} has "
-            f"|q|^2 - 1 = {float(err[idx]):.3g} (tolerance {QUAT_NORM_TOL})")
+        where = ", ".join(str(int(i)) for i in idx)
+        raise InvalidSamples(f"{fieldname}: the quaternion of sample {where} "
+                             f"{quaternion_problem(float(norm2[idx]))}")
 
 
 def decode_samples(obj: Any, n_samples: int | None, widths: tuple[int, ...] = (7, 3),
@@ -860,6 +889,25 @@ def decode_retract(payload: bytes, *, max_bytes: int = MAX_PAYLOAD_BYTES) -> Ret
     return RetractRequest(request_id=_request_id(d),
                           target=_str(d, "target", max_chars=MAX_ID_CHARS),
                           sender=_str(d, "sender", max_chars=MAX_SENDER_CHARS, default=""))
+
+
+def encode_relinearize(request_id: str, frame: str = "", sender: str = "") -> bytes:
+    """A relinearise request of ``frame``'s component (empty: every component)."""
+    d: dict[str, Any] = {"v": VERSION, "id": request_id}
+    if frame:
+        d["frame"] = frame
+    if sender:
+        d["sender"] = sender
+    return pack(d)
+
+
+def decode_relinearize(payload: bytes, *, max_bytes: int = MAX_PAYLOAD_BYTES
+                       ) -> RelinearizeRequest:
+    d = unpack(payload, max_bytes=max_bytes)
+    _keys(d, ("id",), ("frame", "sender"))
+    frame = check_frame(d["frame"]) if "frame" in d else ""
+    return RelinearizeRequest(request_id=_request_id(d), frame=frame,
+                              sender=_str(d, "sender", max_chars=MAX_SENDER_CHARS, default=""))
 
 
 def encode_verdict_request(request_id: str, target: str) -> bytes:

@@ -9,6 +9,7 @@ are exercised against the same server.
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
 import time
@@ -88,6 +89,13 @@ def test_cli_commands_and_exit_codes(server: ServerProcess, tmp_path: Path,
     got = json.loads(out)
     assert code == 0 and abs(got["mean"][0] - 1.0) < 0.1
     assert np.load(tmp_path / "s.npy").shape == (N, 7)
+    # like every writer, --samples-out refuses an existing file without --force
+    code, _, err = _cli(capsys, "query", "w", "r", "--samples-out", str(tmp_path / "s.npy"),
+                        *conn)
+    assert code == 2 and "exists (--force overwrites it)" in err
+    code, _, _ = _cli(capsys, "query", "w", "r", "--samples-out", str(tmp_path / "s"),
+                      "--force", *conn)  # np.save's own suffix: the same file
+    assert code == 0
     code, out, _ = _cli(capsys, "info", "--json", *conn)
     info = json.loads(out)
     assert code == 0 and info["n_samples"] == N and info["n_frames"] == 3
@@ -126,10 +134,24 @@ def test_cli_timeout_exit_code_and_help() -> None:
     r = subprocess.run([sys.executable, "-m", "mcsm_client.cli", "info", "--connect", ep,
                         "--timeout-s", "1"], capture_output=True, text=True, timeout=60)
     assert r.returncode == 3, r.stderr
-    assert "no answer from the server" in r.stderr
+    assert f"cannot connect to {ep}: no Zenoh peer accepted a connection" in r.stderr
     r = subprocess.run([sys.executable, "-m", "mcsm_client.cli", "play", "--help"],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 0 and "--bounded" in r.stdout
+
+
+def test_cli_interrupted_exit_code(server: ServerProcess) -> None:
+    """Exit code 130 (README, ``mcsm-client --help``): Ctrl-C (SIGINT) during a command."""
+    p = subprocess.Popen([sys.executable, "-m", "mcsm_client.cli", "watch", "--connect",
+                          server.endpoint], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         text=True)
+    assert p.stderr is not None
+    line = p.stderr.readline()  # "watching map 'default' (Ctrl-C to stop)": it is running
+    assert "watching map" in line, line
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=30)
+    assert p.returncode == 130, err
+    assert "interrupted" in err and "Traceback" not in err
 
 
 def test_demo_end_to_end_small(tmp_path: Path) -> None:

@@ -2,8 +2,9 @@
 
 Usage: ``python -m tests.core.portable_history [--threads K] [--replay FILE.mcap ...]``.
 Prints one JSON object: the state digest of the same 3-D history (a chain with loop
-closures, point landmarks, a join of two components, a submap import, removals including a
-root's) under each option set that ``mcsm serve`` offers for the joint update, and, for each
+closures, point landmarks, relinearisations on request and by the maps' policies, a join of two
+components, a submap import, removals including a root's) under each option set that
+``mcsm serve`` offers for the joint update, and, for each
 ``--replay`` file, whether it replays identical and its final digests; and a revisit under
 the service's ``--gate-defer`` policy (its digest and every verdict). The parent test runs
 this under other BLAS kernels, other numpy CPU features, other thread counts and other
@@ -30,13 +31,17 @@ OPTION_SETS: dict[str, dict[str, object]] = {
     "denkf+1.01": {"analysis": "denkf", "inflation": 1.01},
     "no gate": {"gate": None},
     "paper": {"method": "paper"},
+    "relinearize often": {"relinearize": {"nis": 0.5, "every": 4, "gap": 2, "regate": 1},
+                          "gate_scale": {"window": 3, "open": 1.0, "max": 4.0}},
 }
 
 
-def history(threads: int, **opts: object) -> str:
+def history(threads: int, device: object = "cpu", **opts: object) -> str:
+    """The digest of the scripted history; ``device``: where the maps keep their edges (the
+    device tests run it on the emulated GPU)."""
     rng = np.random.default_rng(20261123)
-    m = StochasticMap(N, threads=threads, **opts)  # type: ignore[arg-type]
-    side = StochasticMap(N, threads=threads, **opts)  # type: ignore[arg-type]
+    m = StochasticMap(N, threads=threads, device=device, **opts)  # type: ignore[arg-type]
+    side = StochasticMap(N, threads=threads, device=device, **opts)  # type: ignore[arg-type]
     for k in range(30):
         m.update(f"p{k}", f"p{k + 1}", random_at(rng, N, kind="cloud", t_sigma=0.2,
                                                   r_sigma=0.05))
@@ -48,6 +53,9 @@ def history(threads: int, **opts: object) -> str:
                      m.query(f"p{a}", f"p{k + 1}")[rng.permutation(N)])
             m.update(f"p{k + 1}", f"l{4 * (a // 4)}",
                      m.query(f"p{k + 1}", f"l{4 * (a // 4)}")[:, :3][rng.permutation(N)])
+        if k in (12, 24):
+            m.remove(f"p{k - 8}")  # a removed pose, then a relinearisation on request
+            m.relinearize()
     for k in range(8):  # a second robot's map, exported and imported
         side.update(f"r2/q{k}", f"r2/q{k + 1}", random_at(rng, N, kind="cloud", t_sigma=0.2))
     m.import_component(side.export_component("r2/q0"))
@@ -57,10 +65,11 @@ def history(threads: int, **opts: object) -> str:
     m.remove("p0")  # the root: re-root at the next full frame
     m.update("p1", "p29", m.query("p1", "p29")[rng.permutation(N)])
     m.remove("r2/q8")
+    m.relinearize("p1")  # an imported submap's component: skipped, the digest unchanged
     return m.state_digest()
 
 
-def deferral_history(threads: int) -> str:
+def deferral_history(threads: int, device: object = "cpu") -> str:
     """A revisit under ``--gate-defer`` (the service's policy over the core): its closures are
     held, paired through the map's joint samples (the cycle test) and decided; the digest and
     every verdict's status and NIS."""
@@ -68,7 +77,7 @@ def deferral_history(threads: int) -> str:
     from mcsm.deferral import DeferOptions, Deferral
 
     rng = np.random.default_rng(20261124)
-    m = StochasticMap(N, threads=threads)
+    m = StochasticMap(N, threads=threads, device=device)
     dfr = Deferral(DeferOptions(expiry=6, revisit_gap=3), m.gate)
     statuses = []
 

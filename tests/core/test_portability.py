@@ -24,7 +24,8 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-SOURCE = ROOT / "service" / "mcsm" / "core" / "_kernel.c"
+SOURCES = [ROOT / "service" / "mcsm" / "core" / f for f in (
+    "_kernel.c", "_relin.c", "_relin_order.c", "_relin_chol.c", "_relin_draw.c")]
 RECORDINGS = sorted(str(p) for p in (ROOT / "recordings").glob("*.mcap"))
 
 
@@ -72,8 +73,9 @@ def kernel_builds(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     builds = {}
     for name, march in (("baseline", "-march=x86-64"), ("native", "-march=native")):
         lib = out / f"kernel-{name}.so"
-        subprocess.run([cc, *_kernel_flags(), march, "-shared", "-fPIC", str(SOURCE), "-o",
-                        str(lib)], check=True, capture_output=True, timeout=120)
+        subprocess.run([cc, *_kernel_flags(), march, "-shared", "-fPIC",
+                        *(str(s) for s in SOURCES), "-o", str(lib)], check=True,
+                       capture_output=True, timeout=120)
         builds[name] = lib
     return builds
 
@@ -109,4 +111,4 @@ def test_same_digests_with_the_installed_baseline_build(reference: dict[str, obj
 
 def test_every_option_set_changes_the_digest(reference: dict[str, object]) -> None:
     digests = [v for k, v in reference.items() if not k.endswith(".mcap")]
-    assert len(set(digests)) == len(digests) == 8  # 7 option sets and the --gate-defer run
+    assert len(set(digests)) == len(digests) == 9  # 8 option sets and the --gate-defer run

@@ -193,6 +193,22 @@ def test_replay_says_what_it_verified(files: dict[str, Path], kind: str, code: i
     assert js["exit_code"] == code and js["identical"] == (kind == "full")
 
 
+@pytest.mark.parametrize("kind,code,word", [
+    ("full", EXIT_OK, ""), ("cut", EXIT_CUT, "CUT (no clean close)"),
+    ("flipped", EXIT_DAMAGED, "DAMAGED: bad chunk")])
+def test_cat_prints_what_it_can_then_exits_cut_or_damaged(
+        files: dict[str, Path], kind: str, code: int, word: str,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """Exit codes 4 and 5 of ``cat`` (docs/recordings.md): the inputs before the cut or the
+    damage are printed, then one line on stderr says why it stopped."""
+    assert mcsm_main(["cat", str(files[kind]), "--json"]) == code
+    out, err = capsys.readouterr()
+    seqs = [json.loads(line)["seq"] for line in out.splitlines()]
+    assert seqs == list(range(1, len(seqs) + 1))
+    assert (len(seqs) == 12) == (kind == "full") and (kind == "full" or len(seqs) >= 5)
+    assert word in err and "Traceback" not in err
+
+
 def test_a_divergence_on_a_complete_file_does_not_call_it_cut(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     path = tmp_path / "bad.mcap"
@@ -241,13 +257,17 @@ def test_recover_refuses_bad_paths_before_reading(files: dict[str, Path], tmp_pa
                                                   capsys: pytest.CaptureFixture[str]) -> None:
     existing = tmp_path / "exists.mcap"
     existing.write_bytes(b"keep me")
+    empty = tmp_path / "empty"
+    empty.mkdir()
     for argv, msg in [
             (["recover", str(tmp_path / "missing.mcap"), "-o", str(tmp_path / "o.mcap")],
              "no such file"),
             (["recover", str(files["full"]), "-o", str(existing)], "refusing to overwrite"),
             (["recover", str(files["full"]), "-o", str(files["full"] / "x.mcap")],
              "does not exist"),
-            (["recover", str(tmp_path), "-o", str(tmp_path / "o.mcap")], "is a directory")]:
+            # a directory names a split recording's files: one without any is refused
+            (["recover", str(empty), "-o", str(tmp_path / "o.mcap")],
+             "a directory without *.mcap files")]:
         assert mcsm_main(argv) == EXIT_USAGE
         err = capsys.readouterr().err
         assert msg in err and "Traceback" not in err
@@ -497,6 +517,12 @@ def test_client_sim_refuses_an_unwritable_output_before_running(tmp_path: Path) 
         assert r.returncode == EXIT_USAGE, r.stderr
         assert "does not exist" in r.stderr and "Traceback" not in r.stderr
         assert "iteration" not in r.stdout  # refused before the run started
+        taken = tmp_path / f"taken{flag}"
+        taken.write_text("")
+        r = subprocess.run([str(exe), "sim", "--in-process", "16", "--iterations", "100000",
+                            flag, str(taken)], capture_output=True, text=True, timeout=120)
+        assert r.returncode == EXIT_USAGE and "exists (--force overwrites it)" in r.stderr
+        assert "iteration" not in r.stdout
 
 
 def test_cat_shows_removes_imports_retracts_and_reinstates(

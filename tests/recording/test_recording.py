@@ -308,3 +308,29 @@ def test_recording_without_the_gate_key_replays_without_a_gate(tmp_path: Path) -
         r = decode_input("update", payload, n)
         local.update(r.a, r.b, r.samples)
     assert digests["off"] == local.state_digest() != digests["default"]
+
+
+def test_inspect_says_which_checkpoints_it_lists(capsys: pytest.CaptureFixture[str]) -> None:
+    """A recording with more than 5 checkpoints: the text lists 5 and says so."""
+    shipped = Path(__file__).parents[2] / "recordings" / "loop-small.mcap"
+    assert mcsm_main(["inspect", str(shipped)]) == 0
+    out = capsys.readouterr().out
+    n = int(out.split("checkpoints: ")[1].split()[0])
+    assert n > 5
+    assert f"checkpoints: {n} (the first 3 and the last 2 of {n} listed; --json lists all)" \
+        in out
+    assert out.count("\n    seq ") == 5
+
+
+@pytest.mark.parametrize("command", ["replay", "inspect", "recover", "cat", "plot", "export",
+                                     "export-foxglove", "view", "serve", "router"])
+def test_every_reading_command_has_a_description(command: str,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        mcsm_main([command, "--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    # usage, a blank line, then the description (argparse prints it only when given)
+    first = out.split("\n\n")[1]
+    assert not first.startswith(("positional arguments", "options")), out[:400]
+    assert len(first) > 40

@@ -373,7 +373,7 @@ def test_robot_streams_across_sigkill_and_restore_with_authentication(
     assert d2.stop(signal.SIGTERM) == 0, d2.log_text()
 
 
-def test_only_the_admin_retracts_everyone_reads_verdicts(dep: Deployment) -> None:
+def test_only_the_admin_retracts_and_relinearizes_everyone_reads_verdicts(dep: Deployment) -> None:
     rng = np.random.default_rng(1210)
     with dep.client("robot1", "retr", namespace="robot1") as robot, \
             dep.client("viewer", "retr", timeout_s=DENIED_S) as viewer, \
@@ -393,6 +393,15 @@ def test_only_the_admin_retracts_everyone_reads_verdicts(dep: Deployment) -> Non
         assert admin.retract("r1-u2").verdict.status == "retracted"  # type: ignore[union-attr]
         assert viewer.verdict("r1-u2").status == "retracted"  # type: ignore[union-attr]
         assert admin.reinstate("r1-u2").verdict.status == "reinstated"  # type: ignore[union-attr]
+        # relinearisation rewrites every sample of a component: admin only, like retract
+        with pytest.raises(NoPermittedServer):
+            viewer.relinearize("robot1/a")
+        with dep.client("robot1", "retr", namespace="robot1", timeout_s=DENIED_S) as r1:
+            with pytest.raises(NoPermittedServer):
+                r1.relinearize("robot1/a")
+        ack = admin.relinearize("robot1/a")
+        assert ack.op == ack.kind == "relinearize" and ack.relin is not None
+        assert ack.relin["components"][0]["frames"] == 3
 
 
 def test_fleet_server_identities_have_no_rights_on_a_single_server(dep: Deployment) -> None:

@@ -357,3 +357,31 @@ def test_serve_refuses_an_existing_record_path(tmp_path: Path) -> None:
     code = mcsm_main(["serve", "--listen", f"tcp/127.0.0.1:{free_port()}", "--record",
                       str(existing), "--log-level", "ERROR"])
     assert code == 2 and existing.read_bytes() == b"keep me"
+
+
+def test_info_reports_where_the_maps_edges_live(server: Daemon) -> None:
+    """``info`` carries the map's device and the bytes it holds there (issue 25); a map on
+    the CPU reports ``cpu``, the bytes of its edges, and no device memory free."""
+    rng = np.random.default_rng(4409)
+    with MapClient(map="a", connect=server.endpoint, timeout_s=5) as c:
+        c.update("dev0", "dev1", noisy_at(rng, N, [1.0, 0.0, 0.0]))
+        info = c.info()
+    assert info.device == "cpu"
+    assert info.device_bytes >= 2 * 7 * N * 8
+    assert info.device_free_bytes == 0
+
+
+def test_serve_on_cuda_without_a_gpu_is_one_clear_line(tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    try:
+        import cupy
+
+        if cupy.cuda.runtime.getDeviceCount() > 0:
+            pytest.skip("a GPU is present")
+    except Exception:  # no CuPy or no driver: the case under test
+        pass
+    code = mcsm_main(["serve", "--device", "cuda", "--listen", f"tcp/127.0.0.1:{free_port()}",
+                      "--record", str(tmp_path / "r.mcap")])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert err.count("\n") == 1 and "device='cuda'" in err

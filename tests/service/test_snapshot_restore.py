@@ -57,6 +57,8 @@ def test_restore_starts_from_the_latest_snapshot(tmp_path: Path, daemons: list[D
         assert ack.duplicate and ack.seq == 4
         assert c.info().digest == local.state_digest()
     assert d2.stop(signal.SIGINT) == 0, d2.log_text()
+    # the log says what was restored: the snapshot it started from and the inputs after it
+    assert "map 'default': snapshot at seq 30 + 5 inputs" in d2.log_text(), d2.log_text()
     rep = replay(d2.record)
     assert rep.identical, rep.divergence
     assert rep.snapshots_loaded == 1 and rep.n_inputs == 5

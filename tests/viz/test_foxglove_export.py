@@ -3,6 +3,7 @@ the replayed map's 95 % regions."""
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
@@ -19,6 +20,8 @@ from tests.viz.foxglove_util import check_scene_against_map, message_class
 SCHEMAS = {"/mcsm/default/scene": "foxglove.SceneUpdate",
            "/mcsm/default/tf": "foxglove.FrameTransforms",
            "/mcsm/default/samples": "foxglove.PointCloud"}
+EXTRA = {"/mcsm/default/log": ("foxglove.Log", "protobuf", "protobuf"),
+         "/mcsm/default/stats": ("mcsm.MapStats", "jsonschema", "json")}
 
 
 def recv_times(path: Path, map_name: str) -> dict[int, int]:
@@ -38,7 +41,13 @@ def test_export_reads_back_indexed_with_the_maps_ellipsoids(
         summary = reader.get_summary()
         assert summary is not None and summary.chunk_indexes  # chunked and indexed
         channels = {c.topic: c for c in summary.channels.values()}
-        assert set(channels) == set(SCHEMAS)
+        assert set(channels) == set(SCHEMAS) | set(EXTRA)
+        for topic, want in EXTRA.items():
+            ch = channels[topic]
+            schema = summary.schemas[ch.schema_id]
+            assert (schema.name, schema.encoding, ch.message_encoding) == want
+        log_cls = message_class("foxglove.Log",
+                                summary.schemas[channels["/mcsm/default/log"].schema_id].data)
         classes = {}
         for topic, name in SCHEMAS.items():
             ch = channels[topic]
@@ -47,14 +56,29 @@ def test_export_reads_back_indexed_with_the_maps_ellipsoids(
                 (name, "protobuf", "protobuf")
             classes[topic] = message_class(name, schema.data)
         msgs = [(ch.topic, msg) for _s, ch, msg in reader.iter_messages()]
-    by_topic: dict[str, list[object]] = {t: [] for t in SCHEMAS}
+    by_topic: dict[str, list[object]] = {t: [] for t in [*SCHEMAS, *EXTRA]}
     for topic, msg in msgs:
         by_topic[topic].append(msg)
-    assert [len(v) for v in by_topic.values()] == [4, 4, 4]
+    assert [len(v) for v in by_topic.values()] == [4, 4, 4, 16, 16]  # a line per input
     times = recv_times(recording.path, "default")
+    ops = recording.ops["default"]
+    # the verdict log: one line per input at its receive time; the loop closure's verdict
+    logs = [log_cls.FromString(m.data) for m in by_topic.pop("/mcsm/default/log")]  # type: ignore
+    assert [lg.timestamp.ToNanoseconds() for lg in logs] == \
+        [times[s] for s in range(1, 17)]
+    closure = logs[12].message  # seq 13: the update x0 -> x8, which the gate refused
+    assert closure.startswith("seq 13 update x0 -> x8: rejected (NIS "), closure
+    assert " over 3 dof, threshold 11.3) id " in closure and logs[12].level == 3  # WARNING
+    assert logs[11].level == 2  # INFO
+    assert logs[13].message.startswith("seq 14 remove x3: remove")
+    assert logs[0].message.startswith("seq 1 update x0 -> x1: new_component, accepted")
+    stats = [json.loads(m.data) for m in by_topic.pop("/mcsm/default/stats")]  # type: ignore
+    assert [s["seq"] for s in stats] == list(range(1, 17))
+    assert stats[-1] == {"seq": 16, "frames": 15, "components": 2, "accepted": 14,
+                         "rejected": 1, "pending": 0, "retracted": 0, "reinstated": 0,
+                         "refused_requests": 0, "queue_length": 0}
     seqs = [5, 10, 15, 16]  # every 5th operation and the last one
     assert [m.log_time for m in by_topic["/mcsm/default/scene"]] == [times[s] for s in seqs]
-    ops = recording.ops["default"]
     for seq, raw_scene, raw_tf, raw_cloud in zip(seqs, *by_topic.values(), strict=True):
         m = build_map(ops, seq)  # the map after the first `seq` operations, built in process
         scene = classes["/mcsm/default/scene"].FromString(raw_scene.data)  # type: ignore
@@ -62,6 +86,10 @@ def test_export_reads_back_indexed_with_the_maps_ellipsoids(
         tf = classes["/mcsm/default/tf"].FromString(raw_tf.data)  # type: ignore
         roots = m.components()  # type: ignore[attr-defined]
         pairs = {(t.parent_frame_id, t.child_frame_id): t for t in tf.transforms}
+        shift = {r: np.array([pairs[("mcsm@default", r)].translation.x, 0.0, 0.0])
+                 for r in m.components()}  # type: ignore[attr-defined]
+        assert shift[roots[0]][0] == 0.0 and all(  # components side by side, not stacked
+            shift[r][0] > 0 for r in roots[1:])
         for r in roots:
             assert ("mcsm@default", r) in pairs
             for f in m.component(r):  # type: ignore[attr-defined]
@@ -76,7 +104,7 @@ def test_export_reads_back_indexed_with_the_maps_ellipsoids(
         assert cloud.frame_id == "mcsm@default" and cloud.point_stride == 16
         assert [f.name for f in cloud.fields] == ["x", "y", "z", "component"]
         pts = np.frombuffer(cloud.data, dtype="<f4").reshape(-1, 4)
-        want = np.concatenate([m.query(r, f)[:, :3]  # type: ignore[attr-defined]
+        want = np.concatenate([m.query(r, f)[:, :3] + shift[r]  # type: ignore[attr-defined]
                                for r in roots for f in m.component(r)])  # type: ignore
         assert len(pts) == len(want) == m.n_frames * N  # type: ignore[attr-defined]
         np.testing.assert_allclose(np.sort(pts[:, 0]), np.sort(want[:, 0]), atol=1e-5)
@@ -91,7 +119,8 @@ def test_export_other_map_and_refusals(recording: Recording, tmp_path: Path,
         summary = make_reader(fh).get_summary()
         assert summary is not None
         topics = {c.topic for c in summary.channels.values()}
-        assert topics == {"/mcsm/other/scene", "/mcsm/other/tf"}  # no samples: no cloud
+        assert topics == {"/mcsm/other/scene", "/mcsm/other/tf", "/mcsm/other/log",
+                          "/mcsm/other/stats"}  # no samples: no cloud
     assert "1 snapshot (every 1 operation) up to seq 1" in capsys.readouterr().out
     assert cli.main(["export-foxglove", str(recording.path), "-o", str(out), "--map",
                      "other"]) == 2
@@ -158,3 +187,45 @@ def test_export_of_a_recording_with_state_snapshots(tmp_path: Path) -> None:
     rep = export_foxglove(path, tmp_path / "scene.mcap", every=2)
     assert (tmp_path / "scene.mcap").stat().st_size > 0
     assert rep is not None
+
+
+def test_shipped_layout_matches_the_topics_the_view_and_export_write() -> None:
+    """docs/foxglove-layout.json is ``foxglove_layout('default')``: its 3D panel follows the
+    display frame, shows the scene and samples, its Log panel reads the verdicts and its Plot
+    panel the counters, all topics and fields that exist."""
+    from mcsm.viz.foxglove_scene import STATS_FIELDS, display_frame, foxglove_layout, topics
+
+    shipped = json.loads((Path(__file__).parents[2] / "docs" / "foxglove-layout.json")
+                         .read_text())
+    assert shipped == foxglove_layout("default")
+    cfg, t = shipped["configById"], topics("default")
+    assert cfg["3D!mcsm"]["followTf"] == display_frame("default")
+    assert set(cfg["3D!mcsm"]["topics"]) == {t["scene"], t["samples"]}
+    assert cfg["RosOut!mcsm"]["topicToRender"] == t["log"]
+    for p in cfg["Plot!mcsm"]["paths"]:
+        topic, fieldname = p["value"].split(".")
+        assert topic == t["stats"] and fieldname in STATS_FIELDS
+    panels = json.dumps(shipped["layout"])
+    assert all(f'"{k}"' in panels for k in cfg)  # every configured panel is placed
+
+
+def test_commands_given_a_foxglove_export_say_not_an_mcsm_recording(
+        recording: Recording, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """mcsm's own Foxglove scene is MCAP but not a recording: every command reading
+    recordings says so in one line and exits 2 (replay said DAMAGED, exit 5; recover said
+    "complete" and wrote an empty copy)."""
+    scene = tmp_path / "scene.mcap"
+    assert cli.main(["export", "foxglove", str(recording.path), "-o", str(scene),
+                     "--samples-per-frame", "0"]) == 0
+    capsys.readouterr()
+    out = tmp_path / "copy.mcap"
+    for argv in (["replay", str(scene)], ["inspect", str(scene)], ["cat", str(scene)],
+                 ["recover", str(scene), "-o", str(out)], ["plot", str(scene), "-o",
+                                                           str(tmp_path / "p.png")],
+                 ["export", "g2o", str(scene), "-o", str(tmp_path / "m.g2o")]):
+        assert cli.main(argv) == 2, argv
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+        assert f"{scene}: not an mcsm recording (its first message is on /mcsm/default/" in err
+    assert not out.exists()
+    assert cli.main(["replay", str(recording.path)]) == 0  # a recording still is one

@@ -1,6 +1,9 @@
-"""``mcsm view``: a real ``mcsm serve`` and a real ``mcsm view`` subprocess on loopback, and a
-WebSocket client speaking Foxglove's protocol (``foxglove.sdk.v1``: serverInfo, advertise,
-subscribe, binary message data) that decodes the scene and compares it with the map."""
+"""``mcsm view``: a real ``mcsm serve`` and a real ``mcsm view`` subprocess on loopback, and
+three viewers: a WebSocket client written here from Foxglove's protocol (serverInfo, advertise,
+subscribe, binary message data) offering ``foxglove.sdk.v1``, the same offering only the older
+name ``foxglove.websocket.v1``, and npm's ``@foxglove/ws-protocol`` client in its default
+setting (a Node script; skipped only without node and npm). Each decodes the scene and compares
+it with the map; the verdict log and the counters are checked too."""
 
 from __future__ import annotations
 
@@ -9,6 +12,7 @@ import base64
 import json
 import os
 import queue
+import shutil
 import signal
 import struct
 import subprocess
@@ -27,6 +31,8 @@ from tests.viz.conftest import N, apply, build_map, default_ops, planar_point
 from tests.viz.foxglove_util import check_scene_against_map, message_class
 
 SUBPROTOCOL = "foxglove.sdk.v1"
+OLD_SUBPROTOCOL = "foxglove.websocket.v1"
+NODE_CLIENT = Path(__file__).with_name("foxglove_ws_client.cjs")
 OP_MESSAGE_DATA = 0x01
 DEADLINE_S = 60.0
 
@@ -104,8 +110,137 @@ def frame_ids(scene: Any) -> set[str]:
     return {e.id[len("frame/"):] for e in scene.entities if e.id.startswith("frame/")}
 
 
+NPM_PACKAGES = ("@foxglove/ws-protocol@0.8", "ws@8")
+
+
+@pytest.fixture(scope="session")
+def node_modules(request: pytest.FixtureRequest,
+                 tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``@foxglove/ws-protocol`` and ``ws`` installed with npm into pytest's cache folder
+    (once; later runs reuse it), or a temporary folder without pytest's cache; the test is
+    skipped only when node or npm is missing."""
+    node, npm = shutil.which("node"), shutil.which("npm")
+    if node is None or npm is None:
+        pytest.skip("node and npm are needed to run npm's @foxglove/ws-protocol client "
+                    f"(node: {node}, npm: {npm})")
+    cache = getattr(request.config, "cache", None)
+    where = (cache.mkdir("npm-" + "-".join(NPM_PACKAGES).replace("/", "_").replace("@", ""))
+             if cache is not None else tmp_path_factory.mktemp("npm"))
+    if not (where / "node_modules" / "@foxglove" / "ws-protocol" / "package.json").is_file():
+        p = subprocess.run([npm, "install", "--no-audit", "--no-fund", "--prefer-offline",
+                            "--prefix", str(where), *NPM_PACKAGES],
+                           capture_output=True, text=True, timeout=300)
+        assert p.returncode == 0, p.stdout + p.stderr
+    return Path(where) / "node_modules"
+
+
+async def python_viewer(url: str, subprotocol: str, c: Any, rng: np.random.Generator,
+                        ops: list[Any], change: bool = True) -> list[Any]:
+    """Connect offering only ``subprotocol``; check the scene against the map, then (with
+    ``change``) send one more update and wait for it in the scene, the verdict log and the
+    counters."""
+    topic = "/mcsm/default/scene"
+    async with websockets.connect(url, subprotocols=[subprotocol], max_size=None) as ws:
+        assert ws.subprotocol == subprotocol
+        fc = FoxgloveClient(ws)
+        await fc.handshake({topic, "/mcsm/default/tf", "/mcsm/default/samples",
+                            "/mcsm/default/log", "/mcsm/default/stats"})
+        assert fc.server_info is not None
+        ch = fc.channels[topic]
+        assert (ch["schemaName"], ch["encoding"], ch["schemaEncoding"]) == \
+            ("foxglove.SceneUpdate", "protobuf", "protobuf")
+        cls = message_class(ch["schemaName"], base64.b64decode(ch["schema"]))
+        lg = fc.channels["/mcsm/default/log"]
+        assert (lg["schemaName"], lg["encoding"]) == ("foxglove.Log", "protobuf")
+        log_cls = message_class(lg["schemaName"], base64.b64decode(lg["schema"]))
+        st = fc.channels["/mcsm/default/stats"]
+        assert (st["schemaName"], st["encoding"], st["schemaEncoding"]) == \
+            ("mcsm.MapStats", "json", "jsonschema")
+        await fc.subscribe(7, topic)
+        m = build_map(ops)
+        want = set(m.frames())  # type: ignore[attr-defined]
+        scene = await fc.next_message(7, cls, lambda s: frame_ids(s) == want)
+        check_scene_against_map(scene, m)
+        if not change:
+            return ops
+        # the map changes: a new landmark shows up in the scene, its verdict in the log,
+        # the counters move
+        await fc.subscribe(8, "/mcsm/default/log")
+        await fc.subscribe(9, "/mcsm/default/stats")
+        name = f"l{len(ops)}"
+        new = ("update", "x4", name, planar_point(rng, N, [0.3, -0.7]))
+        ack = c.update_point(new[1], new[2], new[3])
+        ops = [*ops, new]
+        line = await fc.next_message(8, log_cls, lambda g: f"x4 -> {name}" in g.message)
+        assert line.message == (f"seq {ack.seq} update x4 -> {name}: new_frame, accepted "
+                                f"[{ack.verdict.reason}] id {ack.request_id}"), line.message
+        assert line.level == 2 and line.name == "mcsm/default"  # INFO
+        info = c.info()
+        stats = await fc.next_message(9, _Json, lambda j: j.d["seq"] == ack.seq)
+        assert stats.d["accepted"] == info.verdicts.get("accepted", 0)
+        assert stats.d["rejected"] == info.verdicts.get("rejected", 0)
+        assert stats.d["frames"] == info.n_frames and stats.d["queue_length"] >= 0
+        scene = await fc.next_message(7, cls, lambda s: name in frame_ids(s))
+        check_scene_against_map(scene, build_map(ops))
+    return ops
+
+
+class _Json:
+    """A JSON message (the counters' channel) with protobuf's ``FromString`` interface."""
+
+    def __init__(self, d: dict[str, Any]) -> None:
+        self.d = d
+
+    @classmethod
+    def FromString(cls, data: bytes) -> _Json:  # noqa: N802 - protobuf's name
+        return cls(json.loads(data))
+
+
+def node_viewer(url: str, node_modules: Path, ops: list[Any], workdir: Path) -> None:
+    """npm's FoxgloveClient, default setting: it connects, subscribes, and the scene it gets
+    (decoded here from the schema it was advertised) is the map's; the counters arrive."""
+    env = dict(os.environ, NODE_PATH=str(node_modules))
+    proc = subprocess.Popen(["node", str(NODE_CLIENT), url, "60", "/mcsm/default/scene",
+                             "/mcsm/default/stats"], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    assert proc.stdout is not None and proc.stdin is not None
+    m = build_map(ops)
+    want = set(m.frames())  # type: ignore[attr-defined]
+    seen: list[str] = []
+    schema: dict[str, Any] = {}
+    got_scene = got_stats = False
+    try:
+        deadline = time.monotonic() + DEADLINE_S
+        for raw in proc.stdout:
+            ev = json.loads(raw)
+            seen.append(ev["event"])
+            if ev["event"] == "open":
+                assert ev["protocol"] == OLD_SUBPROTOCOL
+            elif ev["event"] == "advertise":
+                schema[ev["topic"]] = ev
+            elif ev["event"] == "message" and ev["topic"] == "/mcsm/default/stats":
+                got_stats = json.loads(base64.b64decode(ev["data"]))["frames"] == len(want)
+            elif ev["event"] == "message":
+                a = schema[ev["topic"]]
+                cls = message_class(a["schemaName"], base64.b64decode(a["schema"]))
+                scene = cls.FromString(base64.b64decode(ev["data"]))
+                if frame_ids(scene) == want:
+                    check_scene_against_map(scene, m)
+                    got_scene = True
+            assert ev["event"] not in ("error", "close"), ev
+            if (got_scene and got_stats) or time.monotonic() > deadline:
+                break
+    finally:
+        proc.stdin.close()
+        proc.wait(timeout=30)
+        err = proc.stderr.read() if proc.stderr else ""
+    assert got_scene and got_stats, (seen[:10], err)
+    assert seen[:2] == ["open", "serverInfo"], seen[:5]
+
+
 @pytest.mark.slow
-def test_live_view_serves_the_changing_map_over_foxglove_websocket(tmp_path: Path) -> None:
+def test_live_view_serves_the_changing_map_to_every_foxglove_client(
+        tmp_path: Path, node_modules: Path) -> None:
     from mcsm_client.client import MapClient
 
     rng = np.random.default_rng(20261124)
@@ -117,32 +252,9 @@ def test_live_view_serves_the_changing_map_over_foxglove_websocket(tmp_path: Pat
             for op in ops:
                 apply(c, op)
             view, url = start_view(tmp_path, d.endpoint, free_port())
-            topic = "/mcsm/default/scene"
-
-            async def session() -> None:
-                async with websockets.connect(url, subprotocols=[SUBPROTOCOL],
-                                              max_size=None) as ws:
-                    assert ws.subprotocol == SUBPROTOCOL
-                    fc = FoxgloveClient(ws)
-                    await fc.handshake({topic, "/mcsm/default/tf", "/mcsm/default/samples"})
-                    assert fc.server_info is not None
-                    ch = fc.channels[topic]
-                    assert (ch["schemaName"], ch["encoding"], ch["schemaEncoding"]) == \
-                        ("foxglove.SceneUpdate", "protobuf", "protobuf")
-                    cls = message_class(ch["schemaName"], base64.b64decode(ch["schema"]))
-                    await fc.subscribe(7, topic)
-                    m = build_map(ops)
-                    want = set(m.frames())  # type: ignore[attr-defined]
-                    scene = await fc.next_message(7, cls, lambda s: frame_ids(s) == want)
-                    check_scene_against_map(scene, m)
-                    # the map changes: a new landmark shows up in the live scene
-                    new = ("update", "x4", "l9", planar_point(rng, N, [0.3, -0.7]))
-                    apply(c, new)
-                    m2 = build_map([*ops, new])
-                    scene = await fc.next_message(7, cls, lambda s: "l9" in frame_ids(s))
-                    check_scene_against_map(scene, m2)
-
-            asyncio.run(session())
+            ops = asyncio.run(python_viewer(url, SUBPROTOCOL, c, rng, ops, change=False))
+            ops = asyncio.run(python_viewer(url, OLD_SUBPROTOCOL, c, rng, ops))
+            node_viewer(url, node_modules, ops, tmp_path)
             # a map nobody serves, and the WebSocket port already taken: one line, exit 2
             port = url.rsplit(":", 1)[1]
             for args, needle in [
@@ -160,6 +272,7 @@ def test_live_view_serves_the_changing_map_over_foxglove_websocket(tmp_path: Pat
         assert view.wait(timeout=30) == 0, (tmp_path / "view.log").read_text()
         log = (tmp_path / "view.log").read_text()
         assert "Traceback" not in log
+        assert "connected with foxglove.websocket.v1" in log  # the relay let the old name in
     finally:
         if view is not None and view.poll() is None:
             view.kill()

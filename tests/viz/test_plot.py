@@ -20,14 +20,22 @@ from tests.viz.conftest import Recording, build_map
 matplotlib.use("Agg")
 
 
+def chi2_for(lam: np.ndarray) -> float:
+    """χ²(0.95) for as many degrees of freedom as eigenvalues ``lam`` span (a planar map's
+    side view spans 1, its top view 2)."""
+    lam = np.clip(lam, 0, None)
+    return float(chi2.ppf(0.95, max(1, int(np.count_nonzero(lam > 1e-12 * lam.max())))))
+
+
 def expected_ellipses(m: object, axes: tuple[int, int]) -> dict[str, tuple[float, ...]]:
     """Centre and full axes of each frame's 95 % ellipse, from the samples with numpy/scipy."""
     out = {}
-    k = chi2.ppf(0.95, 2)
     for root in m.components():  # type: ignore[attr-defined]
         for f in m.component(root):  # type: ignore[attr-defined]
             xyz = m.query(root, f)[:, :3][:, list(axes)]  # type: ignore[attr-defined]
             lam = np.linalg.eigvalsh(np.cov(xyz.T))
+            k = chi2_for(lam)
+            lam[lam <= 1e-12 * lam.max()] = 0.0
             c = xyz.mean(axis=0)
             out[f] = (c[0], c[1], 2 * np.sqrt(k * max(lam[1], 0)), 2 * np.sqrt(k * max(lam[0], 0)))
     return out
@@ -45,15 +53,23 @@ def test_plot_map_draws_the_marginals_of_the_replayed_map(recording: Recording,
     assert res.view == "top"
     want = expected_ellipses(build_map(ops), (0, 1))
     assert set(res.ellipses) == set(want) and "x3" not in want  # x3 was removed
+    # the second component is drawn to the right of the first (a display shift along x)
+    assert res.offsets["x0"] == (0.0, 0.0, 0.0) and res.offsets["q0"][0] > 0
+    comp = {f.name: f.component for f in mv.frames}
     for name, (cx, cy, w, h) in want.items():
         e = res.ellipses[name]
-        np.testing.assert_allclose([*e.center, e.width, e.height], [cx, cy, w, h],
-                                   rtol=1e-9, atol=1e-12, err_msg=name)
+        dx = res.offsets[comp[name]][0]
+        np.testing.assert_allclose([e.center[0] - dx, e.center[1], e.width, e.height],
+                                   [cx, cy, w, h], rtol=1e-9, atol=1e-12, err_msg=name)
     assert any(e.width > 0.05 for e in res.ellipses.values())
     # one colour per component; the path runs through the pose frames in the order added
     assert set(res.colours) == {"x0", "q0"} and res.colours["x0"] != res.colours["q0"]
     assert res.paths == {"x0": ["x0", "x1", "x2", "x4", "x5", "x6", "x7", "x8"],
                          "q0": ["q0", "q1"]}
+    # one robot per component here: x2 -> x4 joins over the removed x3
+    assert res.robot_paths == {"x0": [["x0", "x1", "x2", "x4", "x5", "x6", "x7", "x8"]],
+                               "q0": [["q0", "q1"]]}
+    assert loaded.parents["x4"] == "x3" and loaded.parents["x1"] == "x0"
     assert res.n_sample_points == len(want) * 64  # N = 64 < 250: every sample is drawn
     img = matplotlib.image.imread(res.path)
     assert img.ndim == 3 and img.shape[0] > 300 and img.shape[1] > 300
@@ -84,9 +100,10 @@ def test_plot_3d_and_truth(recording: Recording, tmp_path: Path) -> None:
     res = plot_map(mv, tmp_path / "t.png", view="3d", truth=truth)
     assert res.view == "3d" and len(res.ellipsoids) == len(mv.frames)
     assert res.truth_drawn == ["l0"] and res.truth_missing == ["nowhere"]
-    k = chi2.ppf(0.95, 3)
     for f in mv.frames:
         lam = np.clip(np.linalg.eigvalsh(f.cov[:3, :3]), 0, None)
+        k = chi2_for(lam)
+        lam[lam <= 1e-12 * lam.max()] = 0.0
         np.testing.assert_allclose(sorted(res.ellipsoids[f.name].sizes), 2 * np.sqrt(k * lam),
                                    atol=1e-12)
 
@@ -97,7 +114,8 @@ def run_cli(*args: str) -> tuple[int, str, str]:
     return p.returncode, p.stdout, p.stderr
 
 
-def test_cli_plot_writes_a_png(recording: Recording, tmp_path: Path) -> None:
+def test_cli_plot_writes_a_png(recording: Recording, tmp_path: Path,
+                               capsys: pytest.CaptureFixture[str]) -> None:
     truth = tmp_path / "truth.csv"
     truth.write_text("frame,x,y\nl0,1.2,0.9\n")
     out = tmp_path / "map.png"
@@ -107,8 +125,12 @@ def test_cli_plot_writes_a_png(recording: Recording, tmp_path: Path) -> None:
     assert "map 'default' at seq 16 of 16, 15 frames, 2 components, view top" in stdout
     assert out.stat().st_size > 10_000
     assert matplotlib.image.imread(out).shape[2] in (3, 4)
+    # every writer refuses an existing output unless --force
+    assert cli.main(["plot", str(recording.path), "-o", str(out), "--map", "other"]) == 2
+    assert capsys.readouterr().err.strip() == f"mcsm plot: output {out} exists (--force " \
+        "overwrites it)"
     code, stdout, stderr = run_cli("plot", str(recording.path), "-o", str(out), "--map",
-                                   "other", "--at", "1", "--view", "yz")
+                                   "other", "--at", "1", "--view", "yz", "--force")
     assert code == 0, stderr
     assert "map 'other' at seq 1 of 1, 2 frames" in stdout
 
@@ -175,3 +197,59 @@ def test_plot_map_opens_no_window_and_leaves_pyplot_alone(tmp_path: Path) -> Non
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "[]"
     assert (tmp_path / "w.png").stat().st_size > 0
+
+
+def two_robots(n: int, steps: int, history: bool) -> tuple[object, dict[str, str] | None]:
+    """Robots A and B drive two circles of ``steps`` poses each, B's map joined to A's by a
+    rendezvous (one component), landmarks seen by both; with ``history`` the creating updates
+    are recorded (as replay does), else the paths come from the frame names."""
+    from mcsm import StochasticMap
+    from mcsm.viz.layout import FrameHistory
+
+    from tests.viz.conftest import planar_at, planar_point
+
+    rng = np.random.default_rng(20261127)
+    m = StochasticMap(n)
+    h = FrameHistory()
+
+    def up(a: str, b: str, x: np.ndarray) -> None:
+        m.update(a, b, x)
+        h.observe("update", (a, b), m)
+
+    for k in range(steps):
+        up(f"A.x{k}", f"A.x{k + 1}", planar_at(rng, n, [1.0, 0.0], 2 * np.pi / steps,
+                                                 sigma_t=0.01, sigma_yaw=0.002))
+        up(f"B.x{k}", f"B.x{k + 1}", planar_at(rng, n, [0.8, 0.0], -2 * np.pi / steps,
+                                                 sigma_t=0.01, sigma_yaw=0.002))
+        if k % 25 == 0:
+            up(f"A.x{k + 1}", f"l{k}", planar_point(rng, n, [0.5, 2.0], sigma=0.05))
+    up("A.x0", "B.x0", planar_at(rng, n, [0.0, -5.0], 0.0, sigma_t=0.01, sigma_yaw=0.002))
+    return m, (h.parent if history else None)
+
+
+def test_two_robots_draw_two_paths_thinned_with_a_legend(tmp_path: Path) -> None:
+    """Paths from the creating updates (as replay records them) and, without that history
+    (a live view), from the frame names: the same two paths either way."""
+    from mcsm.viz.plot import MAX_POSE_ELLIPSES
+
+    steps = 200  # 402 poses: every dashed ellipse drawn made a solid ring
+    m, parents = two_robots(16, steps, True)
+    for history in (True, False):
+        mv = map_view(m, seq=1, parents=parents if history else None)  # type: ignore[arg-type]
+        assert len(mv.components) == 1
+        res = plot_map(mv, tmp_path / f"two-{history}.png")
+        (paths,) = res.robot_paths.values()
+        assert sorted(p[0] for p in paths) == ["A.x0", "B.x0"]
+        assert sorted(len(p) for p in paths) == [steps + 1, steps + 1]
+        for p in paths:  # each path is one robot's chain in order, never a zig-zag
+            robot = p[0].split(".")[0]
+            assert p == [f"{robot}.x{k}" for k in range(steps + 1)]
+        assert len(res.drawn_pose_ellipses) <= 2 * MAX_POSE_ELLIPSES
+        assert {"A.x0", f"A.x{steps}", "B.x0", f"B.x{steps}"} <= set(res.drawn_pose_ellipses)
+        assert res.pose_colours["A.x5"] != res.pose_colours["B.x5"]  # one colour per robot
+        assert any(s.startswith(f"path A.x0 \u2192 A.x{steps} ({steps + 1} poses, ")
+                   for s in res.legend)
+        assert any(s.startswith(f"path B.x0 \u2192 B.x{steps} ({steps + 1} poses, ")
+                   for s in res.legend)
+        assert any(s.startswith(f"component A.x0: 8 landmarks, {2 * steps + 2} poses")
+                   for s in res.legend)

@@ -60,8 +60,9 @@ def test_ellipsoid_axes_and_rotation_give_back_the_covariance(seed: int) -> None
 
 
 def test_degenerate_covariances_give_flat_regions() -> None:
-    e = ellipse([0, 0], np.diag([4.0, 0.0]))
-    assert e.height == 0.0 and e.width == pytest.approx(2 * np.sqrt(chi2.ppf(0.95, 2) * 4))
+    e = ellipse([0, 0], np.diag([4.0, 0.0]))  # all spread along one line: the 1-D region
+    assert e.dof == 1
+    assert e.height == 0.0 and e.width == pytest.approx(2 * np.sqrt(chi2.ppf(0.95, 1) * 4))
     s = ellipsoid([0, 0, 0], np.diag([1.0, 1.0, -1e-20])).sizes
     assert min(s) == 0.0
 

@@ -35,7 +35,7 @@ def _sub() -> wire.SubmapData:
 ARGS: dict[str, tuple[Any, ...]] = {
     "update": ("w", "r", good_samples(N)), "remove": ("r",), "import": (_sub(),),
     "retract": ("u1",), "reinstate": ("u1",), "verdict": ("u1",), "query": ("w", "r"),
-    "info": (), "export": ("w",)}
+    "info": (), "export": ("w",), "relinearize": ("w",)}
 
 
 def test_every_operation_has_its_arguments_here() -> None:

@@ -189,8 +189,12 @@ def _messages(n: int) -> dict[str, bytes]:
         "submap_reply.json": wire.encode_submap_reply(wire.SubmapReply("i", 1, sub)),
         "ack.json": wire.encode_ack(wire.Ack("i", 1, "update", "loop_closure", "w", (),
                                              verdict=wire.Verdict("rejected", 30.5, 6, 16.8,
-                                                                  "", 12))),
+                                                                  "", 12), relin={
+            "trigger": "gate", "time_s": 0.01, "components": [{
+                "root": "w", "frames": 2, "variables": 3, "factors": 2, "iterations": 2,
+                "cost_before": 40.0, "cost_after": 2.5, "trimmed": 0, "skipped": ""}]})),
         "retract_request.json": wire.encode_retract("i", "j", sender="me"),
+        "relinearize_request.json": wire.encode_relinearize("i", "w", sender="me"),
         "verdict_request.json": wire.encode_verdict_request("i", "j"),
         "error.json": wire.encode_error(UnknownFrame("r"), "i"),
         "event.json": wire.encode_event(wire.Event("m", 1, "update", "join", ("w", "r"), "w",

@@ -18,24 +18,15 @@
 #include <stdint.h>
 #include <string.h>
 
-#define MK_OK 0
-#define MK_NONFINITE_GAIN 1
-#define MK_BAD_QUATERNION 2
-#define MK_NONFINITE 3
-#define MK_BAD_ARGS 4
+/* the shared per-sample functions on four samples at a time (kernel_common.h: mk_lane) */
+#define MK_LANE_VECTOR
+#include "kernel_common.h"
 
-#define MAXP 7   /* largest observation dimension (quaternion space) */
-#define MAXK 12  /* largest number of endpoint components */
-#define MAXD 13  /* largest small matrix */
+typedef mk_lane v4;
 
-#define ZERO_VARIANCE 1e-20
-#define RTOL 1e-9
-
-typedef double v4 __attribute__((vector_size(32)));
-
-static inline v4 ld4(const double *p) { v4 v; memcpy(&v, p, sizeof v); return v; }
-static inline double hsum(v4 v) { return (v[0] + v[1]) + (v[2] + v[3]); }
-static inline v4 splat(double x) { v4 v = {x, x, x, x}; return v; }
+static inline v4 ld4(const double *p) { return mk_lane_load(p); }
+static inline double hsum(v4 v) { return mk_lanes(v[0], v[1], v[2], v[3]); }
+static inline v4 splat(double x) { return mk_lane_splat(x); }
 
 int mk_version(void) { return 2; }
 
@@ -72,40 +63,21 @@ static double row_dot(const double *x, const double *y, long n) {
 
 /* ------------------------------------------------------------------ per-sample algebra */
 
-static inline void qmul1(double pw, double px, double py, double pz, double qw, double qx,
-                         double qy, double qz, double *o) {
-    o[0] = pw * qw - px * qx - py * qy - pz * qz;
-    o[1] = pw * qx + px * qw + py * qz - pz * qy;
-    o[2] = pw * qy - px * qz + py * qw + pz * qx;
-    o[3] = pw * qz + px * qy - py * qx + pz * qw;
-}
-
-/* R(q) v with t = 2 u x v, v + w t + u x t */
-static inline void qrot1(double w, double ux, double uy, double uz, double vx, double vy,
-                         double vz, double *o) {
-    double tx = 2.0 * (uy * vz - uz * vy);
-    double ty = 2.0 * (uz * vx - ux * vz);
-    double tz = 2.0 * (ux * vy - uy * vx);
-    o[0] = vx + w * tx + (uy * tz - uz * ty);
-    o[1] = vy + w * ty + (uz * tx - ux * tz);
-    o[2] = vz + w * tz + (ux * ty - uy * tx);
-}
+/* The per-sample functions (mk_qmul, mk_qrot, mk_compound_sample, ...) are in
+ * kernel_common.h, shared with the device kernel. */
+#define qmul1 mk_qmul
+#define qrot1 mk_qrot
 
 /* o = a (+) b, rows; o may not alias a or b */
 void mk_compound(const double *a, const double *b, double *o, long n) {
     for (long i = 0; i < n; i++) {
-        double t[3], q[4];
-        qrot1(a[3 * n + i], a[4 * n + i], a[5 * n + i], a[6 * n + i], b[i], b[n + i],
-              b[2 * n + i], t);
-        o[i] = a[i] + t[0];
-        o[n + i] = a[n + i] + t[1];
-        o[2 * n + i] = a[2 * n + i] + t[2];
-        qmul1(a[3 * n + i], a[4 * n + i], a[5 * n + i], a[6 * n + i], b[3 * n + i],
-              b[4 * n + i], b[5 * n + i], b[6 * n + i], q);
-        o[3 * n + i] = q[0];
-        o[4 * n + i] = q[1];
-        o[5 * n + i] = q[2];
-        o[6 * n + i] = q[3];
+        double as[7], bs[7], os[7];
+        for (int d = 0; d < 7; d++) {
+            as[d] = a[d * n + i];
+            bs[d] = b[d * n + i];
+        }
+        mk_compound_sample(as, bs, os);
+        for (int d = 0; d < 7; d++) o[d * n + i] = os[d];
     }
 }
 
@@ -193,26 +165,23 @@ void mk_point_edge(const double *a, const double *p, double *o, long n) {
 /* Unit quaternion rows q (4 rows of n, stride n between rows): scale to unit norm. */
 static void normalize_q(double *q, long n) {
     for (long i = 0; i < n; i++) {
-        double w = q[i], x = q[n + i], y = q[2 * n + i], z = q[3 * n + i];
-        double s = sqrt(w * w + x * x + y * y + z * z);
-        q[i] = w / s;
-        q[n + i] = x / s;
-        q[2 * n + i] = y / s;
-        q[3 * n + i] = z / s;
+        double s[4] = {q[i], q[n + i], q[2 * n + i], q[3 * n + i]};
+        mk_normalize_sample(s);
+        for (int k = 0; k < 4; k++) q[k * n + i] = s[k];
     }
 }
 
 /* Chordal mean of quaternion rows q (4 x n): samples aligned to the first sample's hemisphere,
- * summed, divided by n, normalised. */
+ * summed in four lanes, divided by n, normalised (kernel_common.h: mk_meanrot_*). */
 static void mean_rotation(const double *q, long n, double *m) {
-    double r0 = q[0], r1 = q[n], r2 = q[2 * n], r3 = q[3 * n];
+    double r[4] = {q[0], q[n], q[2 * n], q[3 * n]};
     v4 acc[4] = {splat(0.0), splat(0.0), splat(0.0), splat(0.0)};
     long i = 0;
     for (; i + 4 <= n; i += 4) {
         v4 a = ld4(q + i), b = ld4(q + n + i), c = ld4(q + 2 * n + i), d = ld4(q + 3 * n + i);
-        v4 dot = a * r0 + b * r1 + c * r2 + d * r3;
+        v4 dot = MK_QDOT(a, b, c, d, r[0], r[1], r[2], r[3]);
         v4 s;
-        for (int l = 0; l < 4; l++) s[l] = dot[l] < 0.0 ? -1.0 : 1.0;
+        for (int l = 0; l < 4; l++) s[l] = mk_sign(dot[l]);
         acc[0] += a * s;
         acc[1] += b * s;
         acc[2] += c * s;
@@ -220,14 +189,8 @@ static void mean_rotation(const double *q, long n, double *m) {
     }
     double sum[4];
     for (int k = 0; k < 4; k++) sum[k] = hsum(acc[k]);
-    for (; i < n; i++) {
-        double dot = q[i] * r0 + q[n + i] * r1 + q[2 * n + i] * r2 + q[3 * n + i] * r3;
-        double s = dot < 0.0 ? -1.0 : 1.0;
-        for (int k = 0; k < 4; k++) sum[k] += q[k * n + i] * s;
-    }
-    for (int k = 0; k < 4; k++) m[k] = sum[k] / (double)n;
-    double norm = sqrt(m[0] * m[0] + m[1] * m[1] + m[2] * m[2] + m[3] * m[3]);
-    for (int k = 0; k < 4; k++) m[k] = m[k] / norm;
+    for (; i < n; i++) mk_meanrot_add(sum, q[i], q[n + i], q[2 * n + i], q[3 * n + i], r);
+    mk_meanrot_finish(sum, n, m);
 }
 
 /* Put every sample of one AT (rows, in place) on the hemisphere of its mean rotation, after
@@ -238,13 +201,9 @@ void mk_canonicalize(double *x, long n, int normalize) {
     double m[4];
     mean_rotation(q, n, m);
     for (long i = 0; i < n; i++) {
-        double dot = q[i] * m[0] + q[n + i] * m[1] + q[2 * n + i] * m[2] + q[3 * n + i] * m[3];
-        if (dot < 0.0) {
-            q[i] = -q[i];
-            q[n + i] = -q[n + i];
-            q[2 * n + i] = -q[2 * n + i];
-            q[3 * n + i] = -q[3 * n + i];
-        }
+        double s[4] = {q[i], q[n + i], q[2 * n + i], q[3 * n + i]};
+        mk_flip_sample(s, m);
+        for (int k = 0; k < 4; k++) q[k * n + i] = s[k];
     }
 }
 
@@ -255,17 +214,16 @@ static void set_identity(double *o, long n) {
 
 static void pin_point(double *o, long n) {
     for (long i = 0; i < n; i++) {
-        o[3 * n + i] = 1.0;
-        o[4 * n + i] = 0.0;
-        o[5 * n + i] = 0.0;
-        o[6 * n + i] = 0.0;
+        double s[4];
+        mk_pin_sample(s);
+        for (int k = 0; k < 4; k++) o[(3 + k) * n + i] = s[k];
     }
 }
 
 static int all_finite(const double *x, long len) {
-    double acc = 0.0;
-    for (long i = 0; i < len; i++) acc += x[i] * 0.0;  /* NaN for any inf or NaN */
-    return acc == 0.0;
+    int ok = 1;
+    for (long i = 0; i < len; i++) ok &= mk_finite(x[i]);
+    return ok;
 }
 
 /* Frames lo..hi-1 of a component (blocks of 7 n): out_f = pre (+) in_f, canonicalised; a frame
@@ -744,56 +702,31 @@ int mk_endpoint_prep(const double *e_a, const double *e_b, long n, int point, co
     return K;
 }
 
-typedef struct {
-    long n;          /* samples */
-    int p;           /* observation dimension */
-    int space;       /* 0 tangent, 1 quaternion */
-    int gain;        /* 0 direct, 1 endpoints */
-    double shrink;   /* < 0: off */
-    double inflation;
-    double wmax;
-    const double *yc;     /* p rows */
-    const double *w;      /* p rows */
-    const double *var_y;  /* p */
-    const double *sum_yc; /* p */
-    const double *wbar;   /* p */
-    /* endpoints */
-    int k;
-    const double *pcs;    /* k rows */
-    const double *lam;    /* k */
-    const double *cpy;    /* k x p, shrunk */
-    const double *sum_pc; /* k */
-} mk_joint_args;
-
-static inline double clip01(double f) {
-    if (f != f) return 0.0;
-    return f < 0.0 ? 0.0 : (f > 1.0 ? 1.0 : f);
-}
+/* mk_joint_args, the per-frame algebra (mk_joint_gain) and the per-sample apply step
+ * (mk_joint_apply) are in kernel_common.h, shared with the device kernel. */
 
 /* Moments of one row x against `m` centred rows r (m <= 12), with a shift s = x[0]:
- * S1 = sum(x - s), S2 = sum((x - s)^2), C[j] = sum((x - s) r_j). Specialised for each m
- * (row_moments dispatches), so that the accumulators stay in registers. */
+ * S1 = sum(x - s), S2 = sum((x - s)^2), C[j] = sum((x - s) r_j), in four lanes (the step
+ * macros of kernel_common.h). Specialised for each m (row_moments dispatches), so that the
+ * accumulators stay in registers. */
 static inline __attribute__((always_inline)) void row_moments_m(
         const double *x, long n, const double *r, const int m, double *s1, double *s2,
         double *c) {
     double s = x[0];
     v4 a1 = splat(0.0), a2 = splat(0.0), ac[MAXK];
     for (int j = 0; j < m; j++) ac[j] = splat(0.0);
-    v4 vs = splat(s);
+    v4 vs = splat(s), d;
     long i = 0;
     for (; i + 4 <= n; i += 4) {
-        v4 d = ld4(x + i) - vs;
-        a1 += d;
-        a2 += d * d;
-        for (int j = 0; j < m; j++) ac[j] += d * ld4(r + j * n + i);
+        MK_MOMENT_STEP(d, ld4(x + i), vs, a1, a2);
+        for (int j = 0; j < m; j++) MK_CROSS_STEP(ac[j], d, ld4(r + j * n + i));
     }
     double t1 = hsum(a1), t2 = hsum(a2), tc[MAXK];
     for (int j = 0; j < m; j++) tc[j] = hsum(ac[j]);
     for (; i < n; i++) {
-        double d = x[i] - s;
-        t1 += d;
-        t2 += d * d;
-        for (int j = 0; j < m; j++) tc[j] += d * r[j * n + i];
+        double e;
+        MK_MOMENT_STEP(e, x[i], s, t1, t2);
+        for (int j = 0; j < m; j++) MK_CROSS_STEP(tc[j], e, r[j * n + i]);
     }
     *s1 = t1;
     *s2 = t2;
@@ -811,230 +744,74 @@ static void row_moments(const double *x, long n, const double *r, int m, double 
     }
 }
 
-/* o = x + sum_k w_k c_k (k in order), lane by lane; specialised for each p. */
-static inline __attribute__((always_inline)) void move_row_p(
-        const double *x, const double *w, const double *c, const int p, long n, double *o) {
+/* shifted product sum of two rows (the endpoint gain's quaternion covariance) */
+static double row_cov_sum(const double *xa, const double *xb, long n) {
+    double sa = xa[0], sb = xb[0];
+    v4 acc = splat(0.0), va = splat(sa), vb = splat(sb);
     long i = 0;
-    for (; i + 4 <= n; i += 4) {
-        v4 acc = splat(0.0);
-        for (int k = 0; k < p; k++) acc += ld4(w + k * n + i) * splat(c[k]);
-        v4 r = ld4(x + i) + acc;
-        memcpy(o + i, &r, sizeof r);
-    }
-    for (; i < n; i++) {
-        double acc = 0.0;
-        for (int k = 0; k < p; k++) acc += w[k * n + i] * c[k];
-        o[i] = x[i] + acc;
-    }
+    for (; i + 4 <= n; i += 4) MK_COV_STEP(acc, ld4(xa + i), va, ld4(xb + i), vb);
+    double t = hsum(acc);
+    for (; i < n; i++) MK_COV_STEP(t, xa[i], sa, xb[i], sb);
+    return t;
 }
 
-#define MOVE_CASE(P) case P: move_row_p(x, w, c, P, n, o); return;
-static void move_row(const double *x, const double *w, const double *c, int p, long n,
-                     double *o) {
+/* the apply step over the samples of one frame (rows x -> rows o), four samples at a time
+ * (mk_joint_apply on mk_lane vectors), specialised for each p; the last n % 4 samples go
+ * through the same function in a block of four padded with copies of the last sample (the
+ * lanes never mix, and a copy's flags are its original's). The OR of the samples' flags. */
+static inline __attribute__((always_inline)) int apply_rows_p(
+        const double *restrict cxy, const double *restrict nmean, const int inflate,
+        double lam, const int p, const double *restrict x, const double *restrict w, long n,
+        double *restrict o) {
+    int flags = 0;
+    long i = 0;
+    for (; i + MK_LANES <= n; i += MK_LANES)
+        flags |= mk_joint_apply(cxy, nmean, inflate, lam, p, x + i, n, w + i, n, o + i, n);
+    if (i < n) {
+        double xt[7 * MK_LANES], wt[MAXP * MK_LANES], ot[7 * MK_LANES];
+        for (int l = 0; l < MK_LANES; l++) {
+            long j = i + l < n ? i + l : n - 1;
+            for (int d = 0; d < 7; d++) xt[d * MK_LANES + l] = x[d * n + j];
+            for (int k = 0; k < p; k++) wt[k * MK_LANES + l] = w[k * n + j];
+        }
+        flags |= mk_joint_apply(cxy, nmean, inflate, lam, p, xt, MK_LANES, wt, MK_LANES, ot,
+                                MK_LANES);
+        for (long j = i; j < n; j++)
+            for (int d = 0; d < 7; d++) o[d * n + j] = ot[d * MK_LANES + (j - i)];
+    }
+    return flags;
+}
+
+#define APPLY_CASE(P) case P: return inflate ? \
+    apply_rows_p(cxy, nmean, 1, lam, P, x, w, n, o) : apply_rows_p(cxy, nmean, 0, lam, P, x, w, n, o);
+static int apply_rows(const double *cxy, const double *nmean, int inflate, double lam, int p,
+                      const double *x, const double *w, long n, double *o) {
     switch (p) {
-        MOVE_CASE(1) MOVE_CASE(2) MOVE_CASE(3) MOVE_CASE(4) MOVE_CASE(5) MOVE_CASE(6)
-        MOVE_CASE(7)
-        default: return;
+        APPLY_CASE(1) APPLY_CASE(2) APPLY_CASE(3) APPLY_CASE(4) APPLY_CASE(5) APPLY_CASE(6)
+        APPLY_CASE(7)
+        default: return MK_FLAG_NONFINITE;
     }
 }
 
-/* One frame of the joint update: moments, gain, move, inflation, renormalisation.
+/* One frame of the joint update: sums, gain, move, inflation, renormalisation.
  * x: the frame's rows (7 x n), o: its output rows. Returns an MK_ code. */
 static int joint_frame(const mk_joint_args *A, const double *x, double *o) {
     long n = A->n;
-    int p = A->p;
-    double nm1 = (double)(n - 1), dn = (double)n;
-    double mean[7], var[7], cxy[MAXP * 7];  /* cxy[k * 7 + d] */
-    if (A->gain == 0) {
-        for (int d = 0; d < 7; d++) {
-            double s1, s2, c[MAXK];
-            row_moments(x + d * n, n, A->yc, p, &s1, &s2, c);
-            double dm = s1 / dn;
-            mean[d] = x[d * n] + dm;
-            double v = (s2 - s1 * dm) / nm1;
-            var[d] = v > 0.0 ? v : 0.0;
-            for (int k = 0; k < p; k++) cxy[k * 7 + d] = (c[k] - dm * A->sum_yc[k]) / nm1;
-        }
-        if (A->space == 0) {
-            double qn = sqrt(mean[3] * mean[3] + mean[4] * mean[4] + mean[5] * mean[5] +
-                             mean[6] * mean[6]);
-            double qb[4] = {mean[3] / qn, mean[4] / qn, mean[5] / qn, mean[6] / qn};
-            for (int k = 0; k < p; k++) {
-                double rad = cxy[k * 7 + 3] * qb[0] + cxy[k * 7 + 4] * qb[1] +
-                             cxy[k * 7 + 5] * qb[2] + cxy[k * 7 + 6] * qb[3];
-                for (int j = 0; j < 4; j++) cxy[k * 7 + 3 + j] -= rad * qb[j];
-            }
-        }
-        if (A->shrink >= 0.0) {
-            for (int k = 0; k < p; k++)
-                for (int d = 0; d < 7; d++) {
-                    double cv = cxy[k * 7 + d];
-                    double denom = A->var_y[k] * var[d];
-                    double r2 = denom > 0.0 ? cv * cv / denom : 0.0;
-                    double f = r2 > 0.0 ? 1.0 - A->shrink * ((1.0 - r2) * (1.0 - r2)) / (dn * r2)
-                                        : 0.0;
-                    cxy[k * 7 + d] = cv * clip01(f);
-                }
-        }
-    } else {
-        int K = A->k;
-        double cxp[MAXK * 7];  /* cxp[j * 7 + d] */
-        double dev0[7];
-        for (int d = 0; d < 7; d++) {
-            double s1, s2, c[MAXK];
-            row_moments(x + d * n, n, A->pcs, K, &s1, &s2, c);
-            double dm = s1 / dn;
-            dev0[d] = dm;
-            mean[d] = x[d * n] + dm;
-            double v = (s2 - s1 * dm) / nm1;
-            var[d] = v > 0.0 ? v : 0.0;
-            for (int j = 0; j < K; j++) cxp[j * 7 + d] = (c[j] - dm * A->sum_pc[j]) / nm1;
-        }
-        /* quaternion covariance 4 x 4 from shifted cross sums */
-        double covq[16];
-        for (int a = 0; a < 4; a++)
-            for (int b = a; b < 4; b++) {
-                const double *xa = x + (3 + a) * n, *xb = x + (3 + b) * n;
-                double sa = xa[0], sb = xb[0];
-                v4 acc = splat(0.0), va = splat(sa), vb = splat(sb);
-                long i = 0;
-                for (; i + 4 <= n; i += 4) acc += (ld4(xa + i) - va) * (ld4(xb + i) - vb);
-                double t = hsum(acc);
-                for (; i < n; i++) t += (xa[i] - sa) * (xb[i] - sb);
-                double cv = (t - dn * dev0[3 + a] * dev0[3 + b]) / nm1;
-                covq[a * 4 + b] = cv;
-                covq[b * 4 + a] = cv;
-            }
-        double qn = sqrt(mean[3] * mean[3] + mean[4] * mean[4] + mean[5] * mean[5] +
-                         mean[6] * mean[6]);
-        double qb[4] = {mean[3] / qn, mean[4] / qn, mean[5] / qn, mean[6] / qn};
-        /* B = columns 1..3 of L(qb) (4 x 3) */
-        double B[12] = {-qb[1], -qb[2], -qb[3],
-                        qb[0], -qb[3], qb[2],
-                        qb[3], qb[0], -qb[1],
-                        -qb[2], qb[1], qb[0]};
-        double varx[6];
-        for (int d = 0; d < 3; d++) varx[d] = var[d];
-        for (int i = 0; i < 3; i++) {
-            double acc = 0.0;
-            for (int k = 0; k < 4; k++)
-                for (int l = 0; l < 4; l++) acc += B[k * 3 + i] * covq[k * 4 + l] * B[l * 3 + i];
-            acc = 4.0 * acc;
-            varx[3 + i] = acc > 0.0 ? acc : 0.0;
-        }
-        double beta[MAXK * 6];
-        for (int j = 0; j < K; j++) {
-            for (int d = 0; d < 3; d++) beta[j * 6 + d] = cxp[j * 7 + d];
-            for (int i = 0; i < 3; i++) {
-                double acc = 0.0;
-                for (int k = 0; k < 4; k++) acc += B[k * 3 + i] * cxp[j * 7 + 3 + k];
-                beta[j * 6 + 3 + i] = 2.0 * acc;
-            }
-        }
-        /* beta = c_xp / lam, then shrunk by the t-statistic */
-        double chart[MAXK * 6];
-        memcpy(chart, beta, sizeof(double) * K * 6);
-        for (int j = 0; j < K; j++)
-            for (int d = 0; d < 6; d++) beta[j * 6 + d] = chart[j * 6 + d] / A->lam[j];
-        if (A->shrink >= 0.0) {
-            double dof = (double)((n - K - 1) > 1 ? (n - K - 1) : 1);
-            for (int d = 0; d < 6; d++) {
-                double expl = 0.0;
-                for (int j = 0; j < K; j++) expl += chart[j * 6 + d] * beta[j * 6 + d];
-                double ve = varx[d] - expl;
-                ve = ve > 0.0 ? ve : 0.0;
-                for (int j = 0; j < K; j++) {
-                    double b = beta[j * 6 + d];
-                    double t2 = b * b * (A->lam[j] * dof) / ve;
-                    double f;
-                    if (t2 != t2) f = 0.0;            /* 0 / 0 */
-                    else if (t2 > 0.0) f = 1.0 - 2.0 * A->shrink / t2;  /* inf gives 1 */
-                    else f = 0.0;
-                    beta[j * 6 + d] = b * clip01(f);
-                }
-            }
-        }
-        double c6[MAXP * 6];
-        for (int k = 0; k < p; k++)
-            for (int d = 0; d < 6; d++) {
-                double acc = 0.0;
-                for (int j = 0; j < K; j++) acc += beta[j * 6 + d] * A->cpy[j * p + k];
-                c6[k * 6 + d] = acc;
-            }
-        for (int k = 0; k < p; k++) {
-            for (int d = 0; d < 3; d++) cxy[k * 7 + d] = c6[k * 6 + d];
-            for (int q = 0; q < 4; q++) {
-                double acc = 0.0;
-                for (int i = 0; i < 3; i++) acc += B[q * 3 + i] * c6[k * 6 + 3 + i];
-                cxy[k * 7 + 3 + q] = 0.5 * acc;
-            }
-        }
-    }
-    /* finite, bounded gain */
-    double cmax = 0.0;
-    for (int i = 0; i < p * 7; i++) {
-        double a = fabs(cxy[i]);
-        if (!(a == a) || a == INFINITY) return MK_NONFINITE_GAIN;
-        cmax = a > cmax ? a : cmax;
-    }
-    if (!(cmax * A->wmax * (double)p < 1e100)) return MK_NONFINITE_GAIN;
-    int inflate = A->inflation != 1.0;
-    double nmean[7];
-    if (inflate)
-        for (int d = 0; d < 7; d++) {
-            double acc = 0.0;
-            for (int k = 0; k < p; k++) acc += A->wbar[k] * cxy[k * 7 + d];
-            nmean[d] = mean[d] + acc;
-        }
+    int m = A->gain == 0 ? A->p : A->k;
+    const double *r = A->gain == 0 ? A->yc : A->pcs;
+    double x0[7], s1[7], s2[7], c[7 * MAXK], covq[MK_NPAIRS];
     for (int d = 0; d < 7; d++) {
-        double cd[MAXP];
-        for (int k = 0; k < p; k++) cd[k] = cxy[k * 7 + d];
-        double *od = o + d * n;
-        move_row(x + d * n, A->w, cd, p, n, od);
-        if (inflate) {
-            double nmd = nmean[d], lam = A->inflation;
-            for (long i = 0; i < n; i++) od[i] = (od[i] - nmd) * lam + nmd;
-        }
+        x0[d] = x[d * n];
+        row_moments(x + d * n, n, r, m, s1 + d, s2 + d, c + d * MAXK);
     }
-    double *q = o + 3 * n;
-    v4 vmin = splat(INFINITY), vmax = splat(0.0);
-    long i = 0;
-    for (; i + 4 <= n; i += 4) {
-        v4 w0 = ld4(q + i), w1 = ld4(q + n + i), w2 = ld4(q + 2 * n + i), w3 = ld4(q + 3 * n + i);
-        v4 ss = w0 * w0 + w1 * w1 + w2 * w2 + w3 * w3, sq;
-        for (int l = 0; l < 4; l++) sq[l] = sqrt(ss[l]);
-        /* NaN fails both comparisons: it becomes the minimum -1 */
-        for (int l = 0; l < 4; l++) {
-            double v = sq[l];
-            vmin[l] = (v == v) ? (v < vmin[l] ? v : vmin[l]) : -1.0;
-            vmax[l] = v > vmax[l] ? v : vmax[l];
-        }
-        v4 r0 = w0 / sq, r1 = w1 / sq, r2 = w2 / sq, r3 = w3 / sq;
-        memcpy(q + i, &r0, sizeof r0);
-        memcpy(q + n + i, &r1, sizeof r1);
-        memcpy(q + 2 * n + i, &r2, sizeof r2);
-        memcpy(q + 3 * n + i, &r3, sizeof r3);
-    }
-    double nmin = INFINITY, nmax = 0.0;
-    for (int l = 0; l < 4; l++) {
-        nmin = vmin[l] < nmin ? vmin[l] : nmin;
-        nmax = vmax[l] > nmax ? vmax[l] : nmax;
-    }
-    for (; i < n; i++) {
-        double w0 = q[i], w1 = q[n + i], w2 = q[2 * n + i], w3 = q[3 * n + i];
-        double sv = sqrt(w0 * w0 + w1 * w1 + w2 * w2 + w3 * w3);
-        nmin = sv < nmin ? sv : nmin;
-        nmax = sv > nmax ? sv : nmax;
-        if (sv != sv) nmin = -1.0;
-        q[i] = w0 / sv;
-        q[n + i] = w1 / sv;
-        q[2 * n + i] = w2 / sv;
-        q[3 * n + i] = w3 / sv;
-    }
-    if (!(nmin > 0.1 && nmax < 1e10)) return MK_BAD_QUATERNION;
-    /* translations stay finite when the gain is bounded and the inputs were finite */
-    if (!all_finite(o, 3 * n)) return MK_NONFINITE;
-    return MK_OK;
+    if (A->gain == 1)
+        for (int t = 0; t < MK_NPAIRS; t++)
+            covq[t] = row_cov_sum(x + (3 + mk_pair_a(t)) * n, x + (3 + mk_pair_b(t)) * n, n);
+    double cxy[MAXP * 7], nmean[7];
+    int rc = mk_joint_gain(A, x0, s1, s2, c, covq, cxy, nmean);
+    if (rc != MK_OK) return rc;
+    int flags = apply_rows(cxy, nmean, A->inflation != 1.0, A->inflation, A->p, x, A->w, n, o);
+    return mk_flags_code(flags);
 }
 
 int mk_joint_frames(const mk_joint_args *A, const double *edges, double *out,

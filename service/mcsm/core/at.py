@@ -13,6 +13,7 @@ meaningful for both.
 
 from __future__ import annotations
 
+import math
 from typing import Literal
 
 import numpy as np
@@ -140,11 +141,22 @@ def check_samples(x: object, n_samples: int | None, width: int) -> Array:
     if width == 7:
         q = a[:, 3:]  # |q|² elementwise in a fixed order: the result enters the map's state
         norm2 = q[:, 0] * q[:, 0] + q[:, 1] * q[:, 1] + q[:, 2] * q[:, 2] + q[:, 3] * q[:, 3]
-        worst = float(np.max(np.abs(norm2 - 1.0)))
-        if worst > QUAT_NORM_TOL:
-            raise InvalidSamples(f"quaternion norm off by {worst:.3g} (tolerance {QUAT_NORM_TOL})")
+        off = np.abs(norm2 - 1.0)
+        k = int(np.argmax(off))
+        if float(off[k]) > QUAT_NORM_TOL:
+            raise InvalidSamples(f"the quaternion of sample {k} "
+                                 f"{quaternion_problem(float(norm2[k]))}")
         a[:, 3:] /= np.sqrt(norm2)[:, None]
     return a
+
+
+def quaternion_problem(norm2: float) -> str:
+    """Why a quaternion with squared norm ``norm2`` is refused, in words (the core's and the
+    wire's one message)."""
+    if norm2 == 0.0:
+        return "is zero (0, 0, 0, 0): not a rotation; the identity is (1, 0, 0, 0) in w x y z"
+    return (f"has norm {math.sqrt(norm2):.6g}, not 1 (|q|² = {norm2:.6g}; a unit quaternion "
+            f"is needed: | |q|² − 1 | <= {QUAT_NORM_TOL:g})")
 
 
 # --------------------------------------------------------------------------- linear algebra

@@ -22,6 +22,7 @@ import numpy.typing as npt
 
 from mcsm.core import kernel
 from mcsm.core.at import QUAT_NORM_TOL, mean_and_cov
+from mcsm.core.device import Backend, DeviceComponent
 from mcsm.core.names import FRAME_RULE, is_frame_name
 from mcsm.core.storage import Component, from_rows, identity_rows, to_rows
 from mcsm.errors import (
@@ -35,6 +36,8 @@ from mcsm.errors import (
 )
 
 Array = npt.NDArray[np.float64]
+Store = Component | DeviceComponent
+"""A component's storage: host memory, or device memory for a map on a GPU."""
 
 
 def check_frame_name(name: object) -> str:
@@ -73,12 +76,16 @@ class Verdict:
 @dataclass(frozen=True)
 class UpdateResult:
     """What an update did: ``kind`` is new_component, new_frame, join, loop_closure, import or
-    rejected (the gate refused a loop closure; the map is unchanged)."""
+    rejected (the gate refused a loop closure; the map is unchanged, unless ``relin`` says
+    that it was relinearised before the gate judged the closure again). ``relin``: the
+    relinearisation this update triggered (:class:`mcsm.core.relinearize.RelinReport`), if
+    any."""
 
     kind: str
     component: str
     frames_added: tuple[str, ...] = ()
     verdict: Verdict = field(default_factory=Verdict)
+    relin: Any = None
 
 
 @dataclass(frozen=True)
@@ -102,9 +109,10 @@ class Submap:
 class Forest:
     """Components of one map with N samples each; the structure under :class:`StochasticMap`."""
 
-    def __init__(self, n_samples: int) -> None:
+    def __init__(self, n_samples: int, backend: Backend | None = None) -> None:
         self.n_samples = n_samples
-        self._comps: dict[int, Component] = {}
+        self.backend = backend  # None: components in host memory
+        self._comps: dict[int, Store] = {}
         self._where: dict[str, int] = {}  # frame -> component id
         self._order: dict[str, None] = {}  # frames in insertion order
         self._next_id = 0
@@ -233,7 +241,7 @@ class Forest:
         flags = np.array(is_point, dtype=np.uint8)
         if kernel.canonicalize_frames(rows, flags, 1, len(frames), renormalize) != kernel.OK:
             raise NumericalError("the submap import produced non-finite samples")
-        self._install(Component(frames, is_point, rows), new_frames=frames)
+        self._install(self._store(frames, is_point, rows), new_frames=frames)
         return UpdateResult("import", frames[0], tuple(frames))
 
     # ------------------------------------------------------------------ snapshots
@@ -246,13 +254,13 @@ class Forest:
 
     def restore_snapshot(self, snap: dict[str, Any]) -> None:
         """Replace the structure by a :meth:`snapshot`'s (trusted input: our own file)."""
-        comps: dict[int, Component] = {}
+        comps: dict[int, Store] = {}
         where: dict[str, int] = {}
         for c in snap["components"]:
             edges = np.asarray(c["edges"], dtype=np.float64)
             if edges.ndim != 3 or edges.shape[1] != self.n_samples or edges.shape[2] != 7:
                 raise InvalidSamples("snapshot edges do not match the map's N")
-            comp = Component(list(c["frames"]), list(c["is_point"]), to_rows(edges))
+            comp = self._store(list(c["frames"]), list(c["is_point"]), to_rows(edges))
             comps[int(c["id"])] = comp
             for f in comp.frames:
                 where[f] = int(c["id"])
@@ -267,17 +275,28 @@ class Forest:
         except (KeyError, TypeError):
             raise UnknownFrame(str(frame)) from None
 
-    def _comp_of(self, frame: str) -> Component:
+    def _store(self, frames: list[str], is_point: list[bool], rows: Array) -> Store:
+        """A component in this map's memory (host, or the backend's device) from host rows
+        ``(M, 7, N)``."""
+        if self.backend is None:
+            return Component(frames, is_point, rows)
+        return DeviceComponent.from_rows(self.backend, frames, is_point, rows)
+
+    def storage_bytes(self) -> int:
+        """Bytes of every component's edges and flags (device memory for a map on a GPU)."""
+        return sum(c.nbytes for c in self._comps.values())
+
+    def _comp_of(self, frame: str) -> Store:
         return self._comps[self._cid(frame)]
 
-    def _pair(self, a: str, b: str) -> tuple[Component, int, int]:
+    def _pair(self, a: str, b: str) -> tuple[Store, int, int]:
         ca, cb = self._cid(a), self._cid(b)
         if ca != cb:
             raise NotRelated(a, b)
         c = self._comps[ca]
         return c, c.index[a], c.index[b]
 
-    def _install(self, comp: Component, new_frames: list[str], cid: int | None = None) -> int:
+    def _install(self, comp: Store, new_frames: list[str], cid: int | None = None) -> int:
         if cid is None:
             cid = self._next_id
             self._next_id += 1
@@ -308,7 +327,7 @@ class Forest:
         rows[0] = identity_rows(n)
         rows[1] = self._leaf_rows(identity_rows(n), x_rows, point, inverse=False)
         _check_finite(rows[1], "adding a frame")
-        self._install(Component([a, b], [False, point], rows), new_frames=[a, b])
+        self._install(self._store([a, b], [False, point], rows), new_frames=[a, b])
         return UpdateResult("new_component", a, (a, b),
                             Verdict(reason="new component: nothing to test against"))
 
@@ -332,15 +351,13 @@ class Forest:
                     f"joining two multi-frame components through one point observation is "
                     f"under-determined (the orientation between them is unknown): observe a "
                     f"full frame of {b!r}'s component with an (N, 7) AT instead")
-            moved = kernel.point_edge(c1.edge_rows(c1.index[a]), x_rows)[None]
-            _check_finite(moved, "the join")
+            rows = kernel.point_edge(c1.edge_rows(c1.index[a]), x_rows)[None]
+            _check_finite(rows, "the join")
+            moved = c1.block_from_rows(rows)
         else:
             x_r1_b = kernel.compound(c1.edge_rows(c1.index[a]), x_rows)
             x_r1_r2 = kernel.compound(x_r1_b, kernel.invert(c2.edge_rows(c2.index[b])))
-            moved = np.empty((len(c2), 7, self.n_samples))
-            if kernel.transform_frames(x_r1_r2, c2.rows, moved, c2.point_flags, 0,
-                                       len(c2)) != kernel.OK:
-                raise NumericalError("the join produced non-finite samples")
+            moved = c2.transformed(x_r1_r2, "the join")
         cid1, cid2 = self._where[a], self._where[b]
         c1.extend(list(c2.frames), c2.point_list(), moved)
         del self._comps[cid2]
@@ -348,19 +365,9 @@ class Forest:
         return UpdateResult("join", c1.root, (),
                             Verdict(reason="join (case I): nothing to test against"))
 
-    def _rerooted(self, c: Component, k: int) -> Component:
-        """The component re-rooted at index k: each edge becomes (r→k)^R ⊕ (r→l)
-        (PAPER Fig. 3a), canonicalised; frame k first, then the others in order."""
-        n = self.n_samples
-        x_k_r = kernel.invert(c.edge_rows(k))
-        moved = np.empty((len(c), 7, n))
-        if kernel.transform_frames(x_k_r, c.rows, moved, c.point_flags, 0, len(c)) != kernel.OK:
-            raise NumericalError("re-rooting produced non-finite samples")
-        order = [k] + [i for i in range(len(c)) if i != k]
-        rows = moved[order]
-        rows[0] = identity_rows(n)
-        flags = c.point_list()
-        return Component([c.frames[i] for i in order], [flags[i] for i in order], rows)
+    def _rerooted(self, c: Store, k: int) -> Store:
+        """The component re-rooted at index k (:meth:`Component.rerooted`)."""
+        return c.rerooted(k)
 
 
 def _check_finite(rows: Array, what: str) -> None:

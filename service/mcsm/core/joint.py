@@ -24,11 +24,13 @@ import os
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 from mcsm.core import kernel
+from mcsm.core.device import DeviceComponent
 from mcsm.core.storage import Component
 from mcsm.errors import NumericalError
 
@@ -93,8 +95,8 @@ class Prepared:
         return int(self.info[2])
 
 
-def prepare(comp: Component, ia: int, ib: int, x_rows: Array, point: bool, space: str,
-            rule: str) -> Prepared:
+def prepare(comp: Component | DeviceComponent, ia: int, ib: int, x_rows: Array, point: bool,
+            space: str, rule: str) -> Prepared:
     """Predict, analyse and measure the innovation of an observation between frames ``ia``
     and ``ib`` of ``comp``; ``x_rows`` ``(7, N)`` or ``(3, N)``."""
     rc, yc, w, info = kernel.analysis(comp.edge_rows(ia), comp.edge_rows(ib), x_rows, point,
@@ -116,16 +118,11 @@ def inflation_factor(prep: Prepared, inflation: float | str, nis_avg: float
     return min(max(lam, 1.0), ADAPT_MAX), avg
 
 
-def apply(comp: Component, ia: int, ib: int, prep: Prepared, *, space: str, gain: str,
-          shrink: float | None, inflation: float, threads: int, spare: Array | None
-          ) -> Array:
-    """Move every frame of ``comp``; returns the replaced buffer (the next update's spare).
-
-    Raises
-    ------
-    NumericalError
-        If a frame's gain is not finite or a quaternion would go to zero (map unchanged).
-    """
+def frame_args(comp: Component | DeviceComponent, ia: int, ib: int, prep: Prepared, *,
+               space: str, gain: str, shrink: float | None, inflation: float
+               ) -> tuple[kernel.JointArgs, dict[str, Array]]:
+    """The frame pass's arguments (``mk_joint_args``) and the arrays they point to (by
+    name; the CPU sets the pointers, the device copies the arrays first)."""
     p, n = prep.p, comp.n_samples
     info = prep.info
     var_y = np.ascontiguousarray(info[3: 3 + p])
@@ -137,15 +134,34 @@ def apply(comp: Component, ia: int, ib: int, prep: Prepared, *, space: str, gain
     args.shrink = -1.0 if shrink is None else float(shrink)
     args.inflation = float(inflation)
     args.wmax = float(info[3 + 3 * p])
-    keep = [prep.yc, prep.w, var_y, sum_yc, wbar]
-    args.yc, args.w = kernel.ptr(prep.yc), kernel.ptr(prep.w)
-    args.var_y, args.sum_yc, args.wbar = kernel.ptr(var_y), kernel.ptr(sum_yc), kernel.ptr(wbar)
+    arrays = {"yc": np.ascontiguousarray(prep.yc), "w": prep.w, "var_y": var_y,
+              "sum_yc": sum_yc, "wbar": wbar}
     if gain == "endpoints":
         pcs, lam, cpy, sum_pc, args.k = kernel.endpoint_prep(
             comp.edge_rows(ia), comp.edge_rows(ib), prep.point, prep.yc, var_y, args.shrink)
-        keep += [pcs, lam, cpy, sum_pc]
-        args.pcs, args.lam, args.cpy = kernel.ptr(pcs), kernel.ptr(lam), kernel.ptr(cpy)
-        args.sum_pc = kernel.ptr(sum_pc)
+        arrays.update(pcs=pcs, lam=lam, cpy=cpy, sum_pc=sum_pc)
+    return args, arrays
+
+
+def apply(comp: Component | DeviceComponent, ia: int, ib: int, prep: Prepared, *, space: str,
+          gain: str, shrink: float | None, inflation: float, threads: int, spare: Any
+          ) -> Any:
+    """Move every frame of ``comp``; returns the replaced buffer (the next update's spare).
+    A component in device memory runs the same frame pass on the device
+    (:meth:`DeviceComponent.apply_joint`).
+
+    Raises
+    ------
+    NumericalError
+        If a frame's gain is not finite or a quaternion would go to zero (map unchanged).
+    """
+    args, arrays = frame_args(comp, ia, ib, prep, space=space, gain=gain, shrink=shrink,
+                              inflation=inflation)
+    if isinstance(comp, DeviceComponent):
+        return comp.apply_joint(args, arrays, threads, spare)
+    for name, a in arrays.items():
+        setattr(args, name, kernel.ptr(a))
+    keep = list(arrays.values())
     buf = comp.buffer
     out = spare if spare is not None and spare.shape == buf.shape else np.empty_like(buf)
     flags = comp.point_flags

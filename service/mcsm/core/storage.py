@@ -8,12 +8,21 @@ component. Frame 0 is the root, its edge the exact identity.
 
 Everything outside this module sees edges as ``(N, 7)`` (one AT) or ``(M, N, 7)`` arrays: the
 layout of the API, the wire, exports and recordings; conversions are exact copies.
+
+The passes over a whole component that change it (a join's or a re-root's transform) are
+methods here, so that a map on a GPU swaps in :class:`mcsm.core.device.DeviceComponent`,
+which has the same methods over device memory. A new O(M N) operation adds a method to both:
+the CPU one calls the kernel on rows, the device one launches a kernel on the frame-minor
+buffer (docs/kernel.md, "The device kernel": how to add one).
 """
 
 from __future__ import annotations
 
 import numpy as np
 import numpy.typing as npt
+
+from mcsm.core import kernel
+from mcsm.errors import NumericalError
 
 Array = npt.NDArray[np.float64]
 
@@ -150,3 +159,31 @@ class Component:
 
     def copy(self) -> Component:
         return Component(list(self.frames), self.point_list(), self.rows.copy())
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the edge buffer and point flags (host memory)."""
+        return int(self._buf.nbytes) + int(self._point.nbytes)
+
+    def block_from_rows(self, rows: Array) -> Array:
+        """Edges ``(k, 7, N)`` as a block for :meth:`extend` (here: the same array)."""
+        return rows
+
+    # ------------------------------------------------------------------ O(M N) passes
+    def transformed(self, pre: Array, what: str) -> Array:
+        """``canonical(pre ⊕ edge_f)`` for every frame (points pinned), a new ``(M, 7, N)``
+        array. Raises NumericalError (nothing changed) on a non-finite result."""
+        moved = np.empty((self._m, 7, self.n_samples))
+        if kernel.transform_frames(pre, self.rows, moved, self._point, 0, self._m) != kernel.OK:
+            raise NumericalError(f"{what} produced non-finite samples")
+        return moved
+
+    def rerooted(self, k: int) -> Component:
+        """The component re-rooted at index k: each edge becomes (r→k)^R ⊕ (r→l)
+        (PAPER Fig. 3a), canonicalised; frame k first, then the others in order."""
+        moved = self.transformed(kernel.invert(self.edge_rows(k)), "re-rooting")
+        order = [k] + [i for i in range(self._m) if i != k]
+        rows = moved[order]
+        rows[0] = identity_rows(self.n_samples)
+        flags = self.point_list()
+        return Component([self.frames[i] for i in order], [flags[i] for i in order], rows)

@@ -1,10 +1,11 @@
-"""Pictures of a map: ``mcsm plot`` (matplotlib PNG), ``mcsm export-foxglove`` (an MCAP scene
-for the Foxglove app) and ``mcsm view`` (a live Foxglove WebSocket server following a running
-``mcsm serve``).
+"""Pictures of a map: ``mcsm plot`` (matplotlib PNG) and ``mcsm export foxglove`` (an MCAP scene
+for Foxglove and Lichtblick); the live ``mcsm view`` is the client package's
+(:mod:`mcsm_client.view`) and uses :mod:`mcsm.viz.foxglove_scene`.
 
-:mod:`mcsm.viz.scene` needs numpy only. matplotlib and ``foxglove-sdk`` come with the optional
-extra ``viz`` (``pip install 'mcsm[viz]'``) and are imported only inside the commands that need
-them, never by ``import mcsm`` or ``import mcsm.viz``.
+:mod:`mcsm.viz.ellipse` (the one 95 % region), :mod:`mcsm.viz.layout` (paths, colours,
+component shifts) and :mod:`mcsm.viz.scene` need numpy only. matplotlib and ``foxglove-sdk``
+come with the optional extra ``viz`` (``pip install 'mcsm[viz]'``) and are imported only inside
+the commands that need them, never by ``import mcsm`` or ``import mcsm.viz``.
 """
 
 from __future__ import annotations

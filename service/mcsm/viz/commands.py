@@ -1,36 +1,34 @@
-"""The ``mcsm plot``, ``mcsm export-foxglove`` and ``mcsm view`` subcommands.
+"""The ``mcsm plot`` and ``mcsm export FORMAT`` subcommands (``foxglove``, ``g2o``, ``tum``;
+``mcsm export-foxglove`` is ``export foxglove``). ``mcsm view``, a client of a live server,
+comes from the client package: :mod:`mcsm_client.view_command`.
 
 Exit codes: 0 done; 2 a user's mistake or an unusable input, said in one line on stderr (missing
 or unreadable recording, unknown map, a sequence number the map never reached, bad ground-truth
-file, output path not writable, the ``viz`` extra not installed, no server answering, the
-WebSocket port taken).
+file, output path not writable, the ``viz`` extra not installed).
 """
 
 from __future__ import annotations
 
 import argparse
-import logging
 import os
-import signal
 import sys
-import threading
 from pathlib import Path
 from typing import Any
 
 from mcsm.errors import McsmError
 
-COMMANDS = ("plot", "export-foxglove", "view")
+COMMANDS = ("plot", "export", "export-foxglove")
 
 
 def add_parsers(sub: Any) -> None:
-    """Add the three subcommands to ``mcsm``'s subparsers."""
-    from mcsm.connect import add_connection_args
-
+    """Add the subcommands to ``mcsm``'s subparsers."""
     p = sub.add_parser("plot", help="draw a recorded map (replayed) into a PNG with matplotlib",
                        description="Replay a recording and draw one map: landmarks with 95 % "
                                    "covariance ellipses, pose frames and their path, one "
                                    "colour per component.")
-    p.add_argument("file", type=Path, help="recording (.mcap) written by mcsm serve")
+    p.add_argument("file", type=Path, nargs="+",
+                   help="recording (.mcap) written by mcsm serve; a split recording's files "
+                        "(several paths, a directory or a pattern, docs/recordings.md)")
     p.add_argument("-o", "--output", type=Path, default=Path("map.png"), metavar="PNG",
                    help="output image (default map.png)")
     p.add_argument("--map", default=None, metavar="NAME",
@@ -45,59 +43,87 @@ def add_parsers(sub: Any) -> None:
     p.add_argument("--view", choices=("auto", "top", "xz", "yz", "3d"), default="auto",
                    help="projection (default auto: top for a planar map, else 3d)")
 
-    e = sub.add_parser("export-foxglove",
-                       help="write a recorded map as a Foxglove scene over time (MCAP)",
-                       description="Replay a recording and write one map's scene (ellipsoids, "
-                                   "transforms, sample clouds) with foxglove-sdk's schemas; "
-                                   "open the file in the Foxglove app.")
-    e.add_argument("file", type=Path, help="recording (.mcap) written by mcsm serve")
-    e.add_argument("-o", "--output", type=Path, default=Path("scene.mcap"), metavar="MCAP",
-                   help="output scene file (default scene.mcap)")
+    p.add_argument("--force", action="store_true", help="overwrite an existing output file")
+
+    x = sub.add_parser("export", help="write a recorded map for other tools: foxglove (a "
+                       "scene over time), g2o (a pose graph), tum (trajectories)",
+                       description="Replay a recording and write one map in another tool's "
+                                   "format (docs/exchange.md, docs/visualising.md). Every "
+                                   "writer refuses an existing output unless --force.")
+    fmt = x.add_subparsers(dest="format", required=True, metavar="FORMAT")
+    _foxglove_args(fmt.add_parser(
+        "foxglove", help="a Foxglove/Lichtblick scene over time (MCAP, protobuf schemas)",
+        description="Replay a recording and write one map's scene (regions, paths, "
+                    "transforms, sample clouds, verdict log, counters) with foxglove-sdk's "
+                    "schemas; open the file in Foxglove or Lichtblick."))
+    g = fmt.add_parser("g2o", help="a g2o pose graph: vertices at the means, every held "
+                       "constraint an edge with its information matrix",
+                       description="Replay a recording and write one map as a g2o file that "
+                                   "g2o and GTSAM's readG2o read (EDGE_SE2 / EDGE_SE3:QUAT, "
+                                   "point landmarks as EDGE_SE2_XY / EDGE_SE3_TRACKXYZ).")
+    _common(g, "map.g2o", "G2O")
+    g.add_argument("--landmarks", choices=("g2o", "br"), default="g2o",
+                   help="planar landmark edges as g2o's EDGE_SE2_XY (default) or GTSAM's BR "
+                        "bearing-range lines (GTSAM's readG2o skips EDGE_SE2_XY)")
+    t = fmt.add_parser("tum", help="TUM trajectories, one file per robot (evo reads them)",
+                       description="Replay a recording and write each robot path of one map "
+                                   "as a TUM file (t x y z qx qy qz qw): PREFIX-ROBOT.tum.")
+    _common(t, "map", "PREFIX")
+
+    e = sub.add_parser("export-foxglove", help="the same as `mcsm export foxglove`",
+                       description="Replay a recording and write one map's scene for "
+                                   "Foxglove or Lichtblick (the same as `mcsm export "
+                                   "foxglove`).")
+    _foxglove_args(e)
+
+
+def _common(p: Any, default: str, metavar: str) -> None:
+    p.add_argument("file", type=Path, help="recording (.mcap) written by mcsm serve")
+    p.add_argument("-o", "--output", type=Path, default=Path(default), metavar=metavar,
+                   help=f"output (default {default})")
+    p.add_argument("--map", default=None, metavar="NAME",
+                   help="which map (default: 'default' or the recording's only map)")
+    p.add_argument("--force", action="store_true", help="overwrite existing output files")
+
+
+def _foxglove_args(e: Any) -> None:
+    _common(e, "scene.mcap", "MCAP")
     e.add_argument("--every", type=int, default=None, metavar="K",
                    help="a snapshot after every K-th operation of the map, and the last one "
                         "(default: K giving at most 100 snapshots)")
-    e.add_argument("--map", default=None, metavar="NAME",
-                   help="which map (default: 'default' or the recording's only map)")
     e.add_argument("--samples-per-frame", type=int, default=100, metavar="M",
                    help="sample points per frame in the point cloud (default 100; 0: none)")
-    e.add_argument("--force", action="store_true", help="overwrite the output file")
-
-    v = sub.add_parser("view", help="serve a live map to the Foxglove app (WebSocket)",
-                       description="Follow a running mcsm serve over Zenoh and publish its "
-                                   "map as a Foxglove scene on a WebSocket; connect the "
-                                   "Foxglove app to ws://HOST:PORT.")
-    add_connection_args(v, role="client")
-    v.add_argument("--foxglove-port", type=int, default=8765, metavar="P",
-                   help="WebSocket port for the Foxglove app (default 8765; 0 picks one)")
-    v.add_argument("--foxglove-host", default="127.0.0.1", metavar="HOST",
-                   help="address to bind the WebSocket to (default 127.0.0.1)")
-    v.add_argument("--samples-per-frame", type=int, default=100, metavar="M",
-                   help="sample points per frame in the point cloud (default 100; 0: none)")
-    v.add_argument("--timeout", type=float, default=10.0, metavar="S",
-                   help="wait this long for the map server (default 10 s)")
-    v.add_argument("--log-level", default="INFO")
 
 
 def run(args: argparse.Namespace) -> int:
     """Run one of :data:`COMMANDS`; a user's mistake becomes one line on stderr and exit 2."""
     name = args.command
+    if name == "export":
+        name = f"export {args.format}"
     try:
-        if name == "plot":
+        if args.command == "plot":
             return _plot(args)
-        if name == "export-foxglove":
-            return _export(args)
-        return _view(args)
+        if args.command == "export" and args.format == "g2o":
+            return _g2o(args)
+        if args.command == "export" and args.format == "tum":
+            return _tum(args)
+        return _export(args)
     except (McsmError, OSError) as exc:
         print(f"mcsm {name}: {exc}", file=sys.stderr)
         return 2
 
 
 def _check_input(path: Path) -> None:
+    from mcsm.filetype import not_a_recording
+
     if not path.is_file():
         raise McsmError(f"no such recording: {path}")
+    why = not_a_recording(path)
+    if why:
+        raise McsmError(f"{path}: {why}")
 
 
-def _check_output(path: Path, overwrite: bool = True) -> None:
+def _check_output(path: Path, overwrite: bool = False) -> None:
     """Refuse an unwritable output before a long replay starts."""
     if path.is_dir():
         raise McsmError(f"output {path} is a directory")
@@ -111,16 +137,19 @@ def _check_output(path: Path, overwrite: bool = True) -> None:
 
 
 def _plot(args: argparse.Namespace) -> int:
+    from mcsm.recset import resolve
     from mcsm.viz import require
     from mcsm.viz.scene import load_map, map_view, read_truth
 
-    _check_input(args.file)
-    _check_output(args.output)
+    files = resolve(args.file)
+    for f in files:
+        _check_input(f)
+    _check_output(args.output, overwrite=args.force)
     require("matplotlib")  # before the replay: a missing extra is said at once
     truth = read_truth(args.truth) if args.truth is not None else None
     from mcsm.viz.plot import plot_map
 
-    loaded = load_map(args.file, args.map, args.at)
+    loaded = load_map(files, args.map, args.at)
     mv = map_view(loaded.map, map_name=loaded.name, seq=loaded.seq, samples=args.samples)
     mv.notes = loaded.notes
     for note in loaded.notes:
@@ -132,7 +161,8 @@ def _plot(args: argparse.Namespace) -> int:
               f"(e.g. {res.truth_missing[0]})", file=sys.stderr)
     n_comp = len(mv.components)
     print(f"{args.output}: map {loaded.name!r} at seq {loaded.seq} of {loaded.last_seq}, "
-          f"{len(mv.frames)} frames, {n_comp} component{'' if n_comp == 1 else 's'}, "
+          f"{len(mv.frames)} frame{'' if len(mv.frames) == 1 else 's'}, "
+          f"{n_comp} component{'' if n_comp == 1 else 's'}, "
           f"view {res.view}")
     return 0
 
@@ -150,7 +180,7 @@ def _export(args: argparse.Namespace) -> int:
     rep = export_foxglove(args.file, args.output, every=args.every, map_name=args.map,
                           samples_per_frame=args.samples_per_frame, overwrite=args.force)
     for note in rep.notes:
-        print(f"mcsm export-foxglove: warning: {note}", file=sys.stderr)
+        print(f"mcsm {_name(args)}: warning: {note}", file=sys.stderr)
     n = len(rep.snapshots)
     print(f"{args.output}: map {rep.map!r}, {n} snapshot{'' if n == 1 else 's'} (every "
           f"{rep.every} operation{'' if rep.every == 1 else 's'}) up to seq {rep.final_seq}; "
@@ -159,33 +189,45 @@ def _export(args: argparse.Namespace) -> int:
     return 0
 
 
-def _view(args: argparse.Namespace) -> int:
-    from mcsm.viz.foxglove_scene import load_foxglove
-    from mcsm.viz.live import ViewOptions, run_view
+def _name(args: argparse.Namespace) -> str:
+    return f"export {args.format}" if args.command == "export" else str(args.command)
 
-    if not 0 <= args.foxglove_port <= 65535:
-        raise McsmError(f"--foxglove-port must be in 0..65535, got {args.foxglove_port}")
-    if args.samples_per_frame < 0:
-        raise McsmError("--samples-per-frame must be at least 0")
-    if not args.timeout > 0:
-        raise McsmError("--timeout must be positive")
-    logging.basicConfig(level=getattr(logging, str(args.log_level).upper(), logging.INFO),
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-                        stream=sys.stderr)
-    load_foxglove()
-    stop = threading.Event()
 
-    def on_signal(_signum: int, _frame: Any) -> None:
-        stop.set()
+def _g2o(args: argparse.Namespace) -> int:
+    from mcsm.exchange import collect, frames_file, write_g2o
 
-    old = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
-    opts = ViewOptions(map=args.map, connect=args.connect, zenoh_config=args.zenoh_config,
-                       prefix=args.prefix, host=args.foxglove_host,
-                       foxglove_port=args.foxglove_port,
-                       samples_per_frame=args.samples_per_frame, timeout_s=args.timeout)
-    try:
-        return run_view(opts, stop, ready=lambda url: print(f"foxglove websocket on {url}",
-                                                            flush=True))
-    finally:
-        for sig, handler in old.items():
-            signal.signal(sig, handler)
+    _check_input(args.file)
+    _check_output(args.output, overwrite=args.force)
+    _check_output(frames_file(args.output), overwrite=args.force)
+    data = collect(args.file, args.map)
+    rep = write_g2o(data, args.output, landmarks=args.landmarks)
+    for note in [*data.notes, *rep.notes]:
+        print(f"mcsm export g2o: note: {note}", file=sys.stderr)
+    print(f"{args.output}: map {data.view.map!r} at seq {data.view.seq}, "
+          f"{'planar (SE2)' if rep.planar else '3-D (SE3)'}: {rep.vertices} vertices "
+          f"({rep.landmarks} landmarks), {rep.edges} edges ({rep.landmark_edges} to "
+          f"landmarks); vertex ids named in {frames_file(args.output)}")
+    return 0
+
+
+def _tum(args: argparse.Namespace) -> int:
+    from mcsm.exchange import collect, tum_paths, write_tum
+
+    _check_input(args.file)
+    _check_output(Path(f"{args.output}-x.tum"), overwrite=True)  # the folder, before replay
+    data = collect(args.file, args.map)
+    for _robot, path, _poses in tum_paths(data, args.output):
+        _check_output(path, overwrite=args.force)
+    for note in data.notes:
+        print(f"mcsm export tum: note: {note}", file=sys.stderr)
+    trajs = write_tum(data, args.output)
+    if not trajs:
+        print(f"mcsm export tum: map {data.view.map!r} has no pose frames: nothing written",
+              file=sys.stderr)
+    for t in trajs:
+        n = len(t.poses)
+        span = f" ({t.poses[0]} .. {t.poses[-1]})" if t.poses else ""
+        left = (f"; left out, sharing a time with the next pose: {', '.join(t.dropped)}"
+                if t.dropped else "")
+        print(f"{t.path}: robot {t.robot}, {n} pose{'' if n == 1 else 's'}{span}{left}")
+    return 0

@@ -1,30 +1,42 @@
-"""A map as a Foxglove scene: ``mcsm export-foxglove`` (MCAP file) and the live ``mcsm view``.
+"""A map as a Foxglove scene: ``mcsm export foxglove`` (MCAP file) and the live ``mcsm view``.
 
-Each snapshot of a map is three messages with foxglove-sdk's own protobuf schemas:
+Each snapshot of a map is three messages with foxglove-sdk's own protobuf schemas, and the
+map's verdicts and counters go on two more topics:
 
 ==============================  ==========================  ===================================
 topic                           schema                      content
 ==============================  ==========================  ===================================
 ``/mcsm/<map>/scene``           ``foxglove.SceneUpdate``    delete-all, then one entity per
-                                                            frame (95 % ellipsoid of its
-                                                            position, label) and one path per
-                                                            component
+                                                            frame (95 % region of its position
+                                                            with an outline, label) and one
+                                                            line per robot path
 ``/mcsm/<map>/tf``              ``foxglove.FrameTransforms``  ``mcsm@<map>`` → each component
-                                                            root (identity), root → each pose
-                                                            frame (its mean)
+                                                            root (its display shift), root →
+                                                            each pose frame (its mean)
 ``/mcsm/<map>/samples``         ``foxglove.PointCloud``     samples of every frame (a stride
                                                             of at most ``samples_per_frame``
                                                             rows each), fields x y z component
+``/mcsm/<map>/log``             ``foxglove.Log``            one line per update: seq, frames,
+                                                            kind, verdict (NIS, threshold),
+                                                            request id; rejected = warning
+``/mcsm/<map>/stats``           ``mcsm.MapStats`` (JSON)    counters Foxglove's Plot panel
+                                                            draws: accepted, rejected, pending,
+                                                            retracted, reinstated, frames,
+                                                            components, refused requests,
+                                                            queue length
 ==============================  ==========================  ===================================
 
 Components of a map are unrelated (no transform joins them); like ``mcsm plot``, the scene puts
-every component's root at the origin of one display frame ``mcsm@<map>`` (``@`` cannot occur in
-an mcsm frame name, so it never collides). Entities are in their root frame. foxglove-sdk is
-imported only by :func:`load_foxglove` (the ``viz`` extra).
+them side by side in one display frame ``mcsm@<map>`` (:mod:`mcsm.viz.layout`; ``@`` cannot
+occur in an mcsm frame name, so it never collides). Entities are in their root frame. The
+regions are :mod:`mcsm.viz.ellipse`'s, drawn with a minimum thickness and an unlit outline in
+the frame's colour (a zero-height disc renders grey in Foxglove). foxglove-sdk is imported only
+by :func:`load_foxglove` (the ``viz`` extra).
 """
 
 from __future__ import annotations
 
+import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,16 +45,28 @@ from typing import Any, cast
 
 import numpy as np
 
+from mcsm.errors import McsmError
 from mcsm.viz import require
-from mcsm.viz.scene import Ellipsoid, MapView, ellipsoid, map_view
+from mcsm.viz.ellipse import Ellipsoid, ellipsoid
+from mcsm.viz.layout import colour_plan, thin
+from mcsm.viz.scene import MapView, ReplaySink, map_view
 
-#: component colours (RGB), the first ones of matplotlib's tab10 like ``mcsm plot``
-PALETTE = [(0.12, 0.47, 0.71), (1.0, 0.5, 0.05), (0.17, 0.63, 0.17), (0.84, 0.15, 0.16),
-           (0.58, 0.4, 0.74), (0.55, 0.34, 0.29), (0.89, 0.47, 0.76), (0.5, 0.5, 0.5),
-           (0.74, 0.74, 0.13), (0.09, 0.75, 0.81)]
 DEFAULT_SAMPLES_PER_FRAME = 100
 #: snapshots of an export without ``every``: K = ceil(operations / 100)
 MAX_AUTO_SNAPSHOTS = 100
+#: points of each region's outline (a closed line loop)
+OUTLINE_POINTS = 20
+#: pose labels along one path at most (the path's ends always)
+MAX_POSE_LABELS = 30
+#: the counters of ``/mcsm/<map>/stats`` (JSON schema ``mcsm.MapStats``)
+STATS_FIELDS = ("seq", "frames", "components", "accepted", "rejected", "pending", "retracted",
+                "reinstated", "refused_requests", "queue_length")
+STATS_SCHEMA = {
+    "title": "mcsm.MapStats", "type": "object",
+    "description": "A map's counters after operation seq: updates per verdict status, frames, "
+                   "components, requests refused with an error, requests waiting (live only)",
+    "properties": {k: {"type": "integer", "minimum": 0} for k in STATS_FIELDS},
+    "required": list(STATS_FIELDS)}
 
 
 def display_frame(map_name: str) -> str:
@@ -50,9 +74,8 @@ def display_frame(map_name: str) -> str:
 
 
 def topics(map_name: str) -> dict[str, str]:
-    """The three topics of one map's scene."""
-    return {"scene": f"/mcsm/{map_name}/scene", "tf": f"/mcsm/{map_name}/tf",
-            "samples": f"/mcsm/{map_name}/samples"}
+    """The five topics of one map's scene."""
+    return {k: f"/mcsm/{map_name}/{k}" for k in ("scene", "tf", "samples", "log", "stats")}
 
 
 def load_foxglove() -> ModuleType:
@@ -72,10 +95,15 @@ class SceneSnapshot:
     transforms: Any
     cloud: Any | None
     ellipsoids: dict[str, Ellipsoid] = field(default_factory=dict)
+    stats: dict[str, int] | None = None
 
 
 def _ts(m: ModuleType, time_ns: int) -> Any:
     return m.Timestamp(sec=int(time_ns // 1_000_000_000), nsec=int(time_ns % 1_000_000_000))
+
+
+def _colour(m: ModuleType, rgb: tuple[float, float, float], a: float) -> Any:
+    return m.Color(r=rgb[0], g=rgb[1], b=rgb[2], a=a)
 
 
 def build_snapshot(mv: MapView, time_ns: int, *, samples_per_frame: int =
@@ -91,32 +119,47 @@ def build_snapshot(mv: MapView, time_ns: int, *, samples_per_frame: int =
     entities = []
     tfs = []
     cloud_parts = []
+    offsets = mv.offsets()
+    paths = {r: [[f.name for f in p] for p in mv.paths(r)] for r in mv.components}
+    comp_col, pose_col = colour_plan(mv.components, paths)
+    labelled = {p[i] for ps in paths.values() for p in ps
+                for i in thin(len(p), MAX_POSE_LABELS)}
+    ident = m.Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)
     for ci, root in enumerate(mv.components):
-        r, g, b = PALETTE[ci % len(PALETTE)]
+        d = offsets[root]
         tfs.append(m.FrameTransform(timestamp=ts, parent_frame_id=disp, child_frame_id=root,
-                                    translation=m.Vector3(x=0.0, y=0.0, z=0.0),
-                                    rotation=m.Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)))
+                                    translation=m.Vector3(x=float(d[0]), y=float(d[1]),
+                                                          z=float(d[2])),
+                                    rotation=ident))
         frames = mv.of_component(root)
         for f in frames:
+            rgb = comp_col[root] if f.is_point else pose_col.get(f.name, comp_col[root])
             e = ellipsoid(f.position, f.cov[:3, :3])
             out.ellipsoids[f.name] = e
+            sx, sy, sz = e.display_sizes()
             pose = m.Pose(position=m.Vector3(x=e.center[0], y=e.center[1], z=e.center[2]),
                           orientation=m.Quaternion(x=e.quat_xyzw[0], y=e.quat_xyzw[1],
                                                    z=e.quat_xyzw[2], w=e.quat_xyzw[3]))
-            sphere = m.SpherePrimitive(pose=pose, size=m.Vector3(x=e.sizes[0], y=e.sizes[1],
-                                                                 z=e.sizes[2]),
-                                       color=m.Color(r=r, g=g, b=b,
-                                                     a=0.45 if f.is_point else 0.25))
-            label_pose = m.Pose(position=m.Vector3(x=e.center[0], y=e.center[1],
-                                                   z=e.center[2]),
-                                orientation=m.Quaternion(x=0.0, y=0.0, z=0.0, w=1.0))
-            text = m.TextPrimitive(pose=label_pose, billboard=True, font_size=12.0,
-                                   scale_invariant=True, color=m.Color(r=r, g=g, b=b, a=1.0),
-                                   text=f.name)
+            sphere = m.SpherePrimitive(pose=pose, size=m.Vector3(x=sx, y=sy, z=sz),
+                                       color=_colour(m, rgb, 0.5 if f.is_point else 0.3))
+            ring = e.outline(OUTLINE_POINTS)
+            outline = m.LinePrimitive(
+                type=m.LinePrimitiveLineType.LineLoop, thickness=1.5, scale_invariant=True,
+                points=[m.Point3(x=float(x), y=float(y), z=float(z)) for x, y, z in ring],
+                color=_colour(m, rgb, 1.0))
+            texts = []
+            if f.is_point or f.name in labelled:
+                label_pose = m.Pose(position=m.Vector3(x=e.center[0], y=e.center[1],
+                                                       z=e.center[2]), orientation=ident)
+                texts.append(m.TextPrimitive(pose=label_pose, billboard=True, font_size=12.0,
+                                             scale_invariant=True, color=_colour(m, rgb, 1.0),
+                                             text=f.name))
             meta = [m.KeyValuePair(key="kind", value="landmark" if f.is_point else "pose"),
-                    m.KeyValuePair(key="component", value=root)]
+                    m.KeyValuePair(key="component", value=root),
+                    m.KeyValuePair(key="region", value=f"95 % ({e.dof}-D)")]
             entities.append(m.SceneEntity(timestamp=ts, frame_id=root, id=f"frame/{f.name}",
-                                          metadata=meta, spheres=[sphere], texts=[text]))
+                                          metadata=meta, spheres=[sphere], lines=[outline],
+                                          texts=texts))
             if not f.is_point and f.name != root:
                 q = f.mean[3:7]  # w x y z
                 tfs.append(m.FrameTransform(
@@ -127,17 +170,23 @@ def build_snapshot(mv: MapView, time_ns: int, *, samples_per_frame: int =
                                           w=float(q[0]))))
             if f.samples is not None and samples_per_frame > 0:
                 step = max(1, -(-len(f.samples) // samples_per_frame))
-                xyz = f.samples[::step, :3]
+                xyz = f.samples[::step, :3] + d
                 cloud_parts.append(np.column_stack([xyz, np.full(len(xyz), float(ci))]))
-        path = [f for f in frames if not f.is_point]
-        if len(path) > 1:
+        by_name = {f.name: f for f in frames}
+        for k, path in enumerate(paths[root]):
+            if len(path) < 2:
+                continue
             line = m.LinePrimitive(type=m.LinePrimitiveLineType.LineStrip, thickness=2.0,
                                    scale_invariant=True,
-                                   points=[m.Point3(x=float(f.mean[0]), y=float(f.mean[1]),
-                                                    z=float(f.mean[2])) for f in path],
-                                   color=m.Color(r=r, g=g, b=b, a=0.8))
-            entities.append(m.SceneEntity(timestamp=ts, frame_id=root, id=f"path/{root}",
-                                          lines=[line]))
+                                   points=[m.Point3(x=float(by_name[n].mean[0]),
+                                                    y=float(by_name[n].mean[1]),
+                                                    z=float(by_name[n].mean[2])) for n in path],
+                                   color=_colour(m, pose_col[path[0]], 0.9))
+            entities.append(m.SceneEntity(
+                timestamp=ts, frame_id=root, id=f"path/{root}/{k}", lines=[line],
+                metadata=[m.KeyValuePair(key="kind", value="path"),
+                          m.KeyValuePair(key="first", value=path[0]),
+                          m.KeyValuePair(key="last", value=path[-1])]))
     out.scene = m.SceneUpdate(
         deletions=[m.SceneEntityDeletion(timestamp=ts, type=m.SceneEntityDeletionType.All)],
         entities=entities)
@@ -147,8 +196,7 @@ def build_snapshot(mv: MapView, time_ns: int, *, samples_per_frame: int =
         f32 = m.PackedElementFieldNumericType.Float32
         out.cloud = m.PointCloud(
             timestamp=ts, frame_id=disp,
-            pose=m.Pose(position=m.Vector3(x=0.0, y=0.0, z=0.0),
-                        orientation=m.Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)),
+            pose=m.Pose(position=m.Vector3(x=0.0, y=0.0, z=0.0), orientation=ident),
             point_stride=16,
             fields=[m.PackedElementField(name=n, offset=4 * k, type=f32)
                     for k, n in enumerate(("x", "y", "z", "component"))],
@@ -156,15 +204,101 @@ def build_snapshot(mv: MapView, time_ns: int, *, samples_per_frame: int =
     return out
 
 
+def map_stats(seq: int, n_frames: int, n_components: int, verdicts: dict[str, int],
+              refused_requests: int = 0, queue_length: int = 0) -> dict[str, int]:
+    """The ``mcsm.MapStats`` message: every field of :data:`STATS_FIELDS`."""
+    out = {"seq": int(seq), "frames": int(n_frames), "components": int(n_components),
+           "refused_requests": int(refused_requests), "queue_length": int(queue_length)}
+    for k in ("accepted", "rejected", "pending", "retracted", "reinstated"):
+        out[k] = int(verdicts.get(k, 0))
+    return out
+
+
+#: verdict status -> log level name (foxglove.LogLevel)
+_LEVEL = {"accepted": "Info", "reinstated": "Info", "pending": "Warning",
+          "rejected": "Warning", "retracted": "Warning"}
+
+
+def verdict_text(seq: int, op: str, kind: str, frames: tuple[str, ...] | list[str],
+                 verdict: dict[str, Any] | None, request_id: str = "") -> tuple[str, str]:
+    """``(level, text)`` of one input's log line: what it did and why (its verdict)."""
+    what = " -> ".join(frames) if op == "update" and len(frames) == 2 else " ".join(frames)
+    text = f"seq {seq} {op} {what}: {kind}".replace("  ", " ")
+    level = "Info"
+    if verdict:
+        status = str(verdict.get("status", ""))
+        level = _LEVEL.get(status, "Info")
+        if status != kind:
+            text += f", {status}"
+        nis, thr = verdict.get("nis"), verdict.get("threshold")
+        if nis is not None:
+            text += f" (NIS {float(nis):.3g} over {verdict.get('dof', 0)} dof"
+            text += f", threshold {float(thr):.3g})" if thr is not None else ", not gated)"
+        if verdict.get("reason"):
+            text += f" [{verdict['reason']}]"
+    if request_id:
+        text += f" id {request_id}"
+    return level, text
+
+
+def log_message(map_name: str, time_ns: int, level: str, text: str) -> Any:
+    """A ``foxglove.Log`` message (name ``mcsm/<map>``)."""
+    m = load_foxglove().messages
+    return m.Log(timestamp=_ts(m, time_ns), level=getattr(m.LogLevel, level), message=text,
+                 name=f"mcsm/{map_name}", file="", line=0)
+
+
+def foxglove_layout(map_name: str = "default") -> dict[str, Any]:
+    """A Foxglove / Lichtblick layout (the apps' "Import from file" JSON) for one map's topics:
+    a 3D panel in the display frame with the scene and the samples, a Log panel on the
+    verdicts, and a Plot panel of the counters. ``docs/foxglove-layout.json`` is this for the
+    map ``default`` (a test keeps the two equal)."""
+    t = topics(map_name)
+    plot = [{"value": f"{t['stats']}.{k}", "enabled": True, "timestampMethod": "receiveTime",
+             "label": k} for k in ("accepted", "rejected", "pending", "queue_length")]
+    return {
+        "configById": {
+            "3D!mcsm": {
+                "followTf": display_frame(map_name), "followMode": "follow-none",
+                "scene": {"transforms": {"showLabel": False}},
+                "cameraState": {"perspective": False, "distance": 80, "phi": 0.0001,
+                                "thetaOffset": 0, "target": [0, 0, 0],
+                                "targetOffset": [0, 0, 0], "targetOrientation": [0, 0, 0, 1],
+                                "fovy": 45, "near": 0.01, "far": 5000},
+                "topics": {t["scene"]: {"visible": True},
+                           t["samples"]: {"visible": True, "pointSize": 2,
+                                          "colorField": "component", "colorMode": "colormap",
+                                          "colorMap": "turbo"}},
+                "layers": {"grid": {"layerId": "foxglove.Grid", "visible": True,
+                                    "frameId": display_frame(map_name), "size": 100,
+                                    "divisions": 20, "color": "#80808040"}},
+                "transforms": {}},
+            "RosOut!mcsm": {"topicToRender": t["log"], "minLogLevel": 1, "searchTerms": []},
+            "Plot!mcsm": {"title": f"map {map_name}: verdicts and queue", "paths": plot,
+                          "showLegend": True, "xAxisVal": "timestamp", "isSynced": True},
+        },
+        "globalVariables": {}, "userNodes": {}, "playbackConfig": {"speed": 1},
+        "layout": {"direction": "row", "first": "3D!mcsm",
+                   "second": {"direction": "column", "first": "RosOut!mcsm",
+                              "second": "Plot!mcsm", "splitPercentage": 55},
+                   "splitPercentage": 65},
+    }
+
+
 class SceneChannels:
-    """The three channels of one map's scene in a foxglove ``Context`` (file or server)."""
+    """The five channels of one map's scene in a foxglove ``Context`` (file or server)."""
 
     def __init__(self, map_name: str, context: Any) -> None:
         fg = load_foxglove()
         t = topics(map_name)
+        self.map_name = map_name
         self.scene = fg.channels.SceneUpdateChannel(t["scene"], context=context)
         self.tf = fg.channels.FrameTransformsChannel(t["tf"], context=context)
         self.samples = fg.channels.PointCloudChannel(t["samples"], context=context)
+        self.logs = fg.channels.LogChannel(t["log"], context=context)
+        self.stats = fg.Channel(t["stats"], message_encoding="json", context=context,
+                                schema=fg.Schema(name="mcsm.MapStats", encoding="jsonschema",
+                                                 data=json.dumps(STATS_SCHEMA).encode()))
 
     def log(self, snap: SceneSnapshot, time_ns: int | None = None) -> None:
         kw = {} if time_ns is None else {"log_time": int(time_ns)}
@@ -172,10 +306,21 @@ class SceneChannels:
         self.scene.log(snap.scene, **kw)
         if snap.cloud is not None:
             self.samples.log(snap.cloud, **kw)
+        if snap.stats is not None:
+            self.log_stats(snap.stats, time_ns)
+
+    def log_stats(self, stats: dict[str, int], time_ns: int | None = None) -> None:
+        kw = {} if time_ns is None else {"log_time": int(time_ns)}
+        self.stats.log(json.dumps(stats).encode(), **kw)
+
+    def log_line(self, time_ns: int, level: str, text: str, *, stamp: bool = True) -> None:
+        """One ``foxglove.Log`` line (``stamp``: logged at ``time_ns``, else now)."""
+        kw = {"log_time": int(time_ns)} if stamp else {}
+        self.logs.log(log_message(self.map_name, time_ns, level, text), **kw)
 
 
 # --------------------------------------------------------------------------------------------
-# mcsm export-foxglove
+# mcsm export foxglove (mcsm export-foxglove)
 # --------------------------------------------------------------------------------------------
 
 @dataclass
@@ -189,37 +334,38 @@ class ExportReport:
     final_view: MapView | None = None  # the map at its last snapshot (for a PNG of it)
 
 
-class _SnapshotSink:
-    """Passed to ``mcsm.recording.replay`` as its ``sink``: replay calls ``config`` with each
-    map's live state and ``input`` after applying each input, so snapshots are taken in one
-    pass over the file with replay's own checks."""
+class _SnapshotSink(ReplaySink):
+    """Replay's sink (:class:`mcsm.viz.scene.ReplaySink`): after each input of the map it
+    logs the input's verdict line and the map's counters, and after every K-th a scene
+    snapshot, so the export is one pass over the file with replay's own checks."""
 
-    def __init__(self, map_name: str, every: int, emit: Any) -> None:
-        self.map_name = map_name
+    def __init__(self, map_name: str, every: int, emit: Any, chans: Any = None) -> None:
+        super().__init__(map_name)
         self.every = every
         self.emit = emit
-        self.state: Any = None
+        self.chans = chans
         self.last_seq = 0
         self.last_emitted = -1
         self.last_time_ns = 0
 
-    def config(self, state: Any, *_args: Any, **_kw: Any) -> None:
-        if state.name == self.map_name:
-            self.state = state
-
-    def input(self, _op: str, map_name: str, seq: int, recv_ns: int, *_args: Any) -> None:
-        if map_name != self.map_name or self.state is None:
-            return
+    def on_input(self, op: str, seq: int, recv_ns: int, request_id: str) -> None:
         self.last_seq, self.last_time_ns = seq, recv_ns
+        st = self.state
+        if self.chans is not None:
+            try:
+                ack = st.verdict_of(request_id)
+            except McsmError:
+                ack = None
+            if ack is not None:
+                v = ack.verdict.to_dict() if ack.verdict is not None else None
+                level, text = verdict_text(seq, op, ack.kind, self.last_frames, v, request_id)
+                self.chans.log_line(recv_ns, level, text)
+            smap = st.map
+            self.chans.log_stats(map_stats(seq, smap.n_frames, len(smap.components()),
+                                           dict(st.verdicts), st.rejected), recv_ns)
         if seq % self.every == 0:
-            self.emit(self.state.map, seq, recv_ns)
+            self.emit(st.map, seq, recv_ns)
             self.last_emitted = seq
-
-    def checkpoint(self, *_args: Any, **_kw: Any) -> None:
-        return None
-
-    def snapshot(self, *_args: Any, **_kw: Any) -> None:
-        return None  # a state snapshot in the file: replay has verified it; nothing to draw
 
     def finish(self) -> None:
         if self.state is not None and self.last_emitted != self.last_seq:
@@ -259,13 +405,14 @@ def export_foxglove(path: str | os.PathLike[str], out: str | os.PathLike[str], *
         chans = SceneChannels(name, ctx)
 
         def emit(smap: Any, seq: int, time_ns: int) -> None:
-            mv = map_view(smap, map_name=name, seq=seq, samples=samples_per_frame > 0)
+            mv = map_view(smap, map_name=name, seq=seq, samples=samples_per_frame > 0,
+                          parents=sink.history.parent)
             chans.log(build_snapshot(mv, time_ns, samples_per_frame=samples_per_frame),
                       time_ns)
             report.snapshots.append(seq)
             report.final_view = mv
 
-        sink = _SnapshotSink(name, every, emit)
+        sink = _SnapshotSink(name, every, emit, chans)
         rep = replay(path, sink=cast(Any, sink))
         sink.finish()
     report.final_seq = sink.last_seq

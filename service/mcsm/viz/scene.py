@@ -6,9 +6,8 @@ frame)``) and optionally its samples. Every frame is expressed in the root frame
 component: components of one map are unrelated (PAPER §3), so a picture draws each one around
 its own root.
 
-The 95 % regions are those of a Gaussian with the marginal's translation covariance: an
-ellipse ``{x : (x − μ)ᵀ Σ⁻¹ (x − μ) ≤ χ²₂(0.95)}`` for a 2-D projection and an ellipsoid with
-``χ²₃(0.95)`` in 3-D. Full axis lengths are ``2 sqrt(χ² λᵢ)`` for the eigenvalues ``λᵢ`` of Σ.
+The 95 % regions are those of a Gaussian with the marginal's translation covariance, defined
+once in :mod:`mcsm.viz.ellipse` (χ² with as many degrees of freedom as the covariance spans).
 """
 
 from __future__ import annotations
@@ -16,9 +15,10 @@ from __future__ import annotations
 import csv
 import math
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -26,133 +26,15 @@ import numpy.typing as npt
 from mcsm.core import StochasticMap
 from mcsm.errors import McsmError
 
+# the one region definition of every picture (re-exported here for older imports)
+from mcsm.viz.ellipse import P_REGION as P_REGION
+from mcsm.viz.ellipse import Ellipse as Ellipse
+from mcsm.viz.ellipse import Ellipsoid as Ellipsoid
+from mcsm.viz.ellipse import chi2_quantile as chi2_quantile
+from mcsm.viz.ellipse import ellipse as ellipse
+from mcsm.viz.ellipse import ellipsoid as ellipsoid
+
 Array = npt.NDArray[np.float64]
-
-#: probability mass inside every drawn ellipse / ellipsoid
-P_REGION = 0.95
-
-
-def chi2_quantile(p: float, dof: int) -> float:
-    """Quantile of the χ² distribution with 1, 2 or 3 degrees of freedom.
-
-    Closed-form CDFs (``erf`` for 1 and 3 dof, ``1 − exp(−x/2)`` for 2), inverted by bisection
-    to machine precision; no scipy needed.
-    """
-    if not 0.0 < p < 1.0:
-        raise ValueError(f"p must be in (0, 1), got {p}")
-    if dof == 2:
-        return -2.0 * math.log1p(-p)
-
-    def cdf(x: float) -> float:
-        if dof == 1:
-            return math.erf(math.sqrt(x / 2.0))
-        if dof == 3:
-            return (math.erf(math.sqrt(x / 2.0))
-                    - math.sqrt(2.0 * x / math.pi) * math.exp(-x / 2.0))
-        raise ValueError(f"dof must be 1, 2 or 3, got {dof}")
-
-    lo, hi = 0.0, 1.0
-    while cdf(hi) < p:
-        hi *= 2.0
-    for _ in range(200):
-        mid = 0.5 * (lo + hi)
-        if cdf(mid) < p:
-            lo = mid
-        else:
-            hi = mid
-        if hi - lo <= 1e-15 * hi:
-            break
-    return 0.5 * (lo + hi)
-
-
-@dataclass(frozen=True)
-class Ellipse:
-    """A 2-D confidence ellipse: centre, full axis lengths, angle of ``width`` from +x (deg)."""
-
-    center: tuple[float, float]
-    width: float
-    height: float
-    angle_deg: float
-
-
-@dataclass(frozen=True)
-class Ellipsoid:
-    """A 3-D confidence ellipsoid: centre, full axis lengths along its own x, y, z, and the
-    rotation of those axes into the parent frame as a unit quaternion ``(x, y, z, w)``
-    (Foxglove's order)."""
-
-    center: tuple[float, float, float]
-    sizes: tuple[float, float, float]
-    quat_xyzw: tuple[float, float, float, float]
-
-    def rotation(self) -> Array:
-        """The 3×3 rotation matrix of :attr:`quat_xyzw`."""
-        x, y, z, w = self.quat_xyzw
-        return np.array([
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-
-
-def ellipse(mean2: npt.ArrayLike, cov2: npt.ArrayLike, p: float = P_REGION) -> Ellipse:
-    """The ``p`` confidence ellipse of a 2-D Gaussian (``width`` along the major axis).
-
-    Parameters
-    ----------
-    mean2 : (2,) float64, metres
-    cov2 : (2, 2) float64, m²; negative eigenvalues from round-off count as 0
-    """
-    c = np.asarray(cov2, dtype=np.float64)
-    lam, vec = np.linalg.eigh(0.5 * (c + c.T))
-    lam = np.clip(lam, 0.0, None)
-    k = chi2_quantile(p, 2)
-    major = vec[:, 1]
-    m = np.asarray(mean2, dtype=np.float64)
-    return Ellipse((float(m[0]), float(m[1])), float(2.0 * math.sqrt(k * lam[1])),
-                   float(2.0 * math.sqrt(k * lam[0])),
-                   float(math.degrees(math.atan2(major[1], major[0]))))
-
-
-def _quat_xyzw(r: Array) -> tuple[float, float, float, float]:
-    """Unit quaternion ``(x, y, z, w)`` of a rotation matrix (Shepperd's method)."""
-    t = float(np.trace(r))
-    if t > 0:
-        s = 2.0 * math.sqrt(1.0 + t)
-        w, x, y, z = 0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, \
-            (r[1, 0] - r[0, 1]) / s
-    elif r[0, 0] > r[1, 1] and r[0, 0] > r[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2])
-        w, x, y, z = (r[2, 1] - r[1, 2]) / s, 0.25 * s, (r[0, 1] + r[1, 0]) / s, \
-            (r[0, 2] + r[2, 0]) / s
-    elif r[1, 1] > r[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2])
-        w, x, y, z = (r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, 0.25 * s, \
-            (r[1, 2] + r[2, 1]) / s
-    else:
-        s = 2.0 * math.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1])
-        w, x, y, z = (r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, \
-            (r[1, 2] + r[2, 1]) / s, 0.25 * s
-    n = math.sqrt(w * w + x * x + y * y + z * z)
-    return (float(x / n), float(y / n), float(z / n), float(w / n))
-
-
-def ellipsoid(mean3: npt.ArrayLike, cov3: npt.ArrayLike, p: float = P_REGION) -> Ellipsoid:
-    """The ``p`` confidence ellipsoid of a 3-D Gaussian.
-
-    Its axes are the eigenvectors of ``cov3`` (one flipped if needed to make a rotation), its
-    full lengths ``2 sqrt(χ²₃(p) λᵢ)``.
-    """
-    c = np.asarray(cov3, dtype=np.float64)
-    lam, vec = np.linalg.eigh(0.5 * (c + c.T))
-    lam = np.clip(lam, 0.0, None)
-    if np.linalg.det(vec) < 0:
-        vec[:, 0] = -vec[:, 0]
-    k = chi2_quantile(p, 3)
-    sizes = 2.0 * np.sqrt(k * lam)
-    m = np.asarray(mean3, dtype=np.float64)
-    return Ellipsoid((float(m[0]), float(m[1]), float(m[2])),
-                     (float(sizes[0]), float(sizes[1]), float(sizes[2])), _quat_xyzw(vec))
-
 
 # --------------------------------------------------------------------------------------------
 # The map as pictures see it
@@ -184,6 +66,8 @@ class MapView:
     components: list[str]
     frames: list[FrameView]
     notes: list[str] = field(default_factory=list)  # warnings (truncated file, divergence)
+    #: the update that created each frame, when known (:class:`mcsm.viz.layout.FrameHistory`)
+    parents: dict[str, str] | None = None
 
     @property
     def n_samples(self) -> int:
@@ -203,6 +87,41 @@ class MapView:
         """The pose (non-point) frames of one component in the order they were added."""
         return [f for f in self.of_component(root) if not f.is_point]
 
+    def paths(self, root: str) -> list[list[FrameView]]:
+        """One component's pose frames split into robot paths (:func:`mcsm.viz.layout.
+        robot_paths`: odometry chains, or name stems where the history is unknown)."""
+        from mcsm.viz.layout import robot_paths
+
+        by_name = {f.name: f for f in self.pose_path(root)}
+        return [[by_name[n] for n in path]
+                for path in robot_paths(by_name.values(), self.parents)]
+
+    def offsets(self) -> dict[str, Array]:
+        """Display shift of each component so that none overlaps another
+        (:func:`mcsm.viz.layout.component_offsets`)."""
+        from mcsm.viz.layout import component_offsets
+
+        return component_offsets(self.frames, self.components)
+
+    def shifted(self, offsets: dict[str, Array]) -> MapView:
+        """A copy with every frame's position and samples moved by its component's display
+        shift (``offsets``: root -> (3,) metres, :meth:`offsets`); covariances unchanged."""
+        frames = []
+        for f in self.frames:
+            d = offsets.get(f.component)
+            if d is None or not np.any(d):
+                frames.append(f)
+                continue
+            mean = f.mean.copy()
+            mean[:3] += d
+            smp = None
+            if f.samples is not None:
+                smp = f.samples.copy()
+                smp[:, :3] += d
+            frames.append(FrameView(f.name, f.component, f.is_point, mean, f.cov, smp))
+        return MapView(self.map, self.seq, self.options, self.components, frames,
+                       list(self.notes), self.parents)
+
     def options_text(self) -> str:
         o = self.options
         parts = [str(o.get(k)) for k in ("method", "space", "analysis") if k in o]
@@ -211,13 +130,14 @@ class MapView:
 
 
 def map_view(smap: StochasticMap, *, map_name: str = "default", seq: int = 0,
-             samples: bool = False) -> MapView:
+             samples: bool = False, parents: dict[str, str] | None = None) -> MapView:
     """A :class:`MapView` of ``smap``: every frame's marginal relative to its component root.
 
     Parameters
     ----------
     smap : the map (read only)
     samples : also copy every frame's samples ``(N, 7)`` (``smap.query(root, frame)``)
+    parents : the update that created each frame, if known (robot paths follow it)
     """
     roots = smap.components()
     root_of = {f: r for r in roots for f in smap.component(r)}
@@ -229,7 +149,8 @@ def map_view(smap: StochasticMap, *, map_name: str = "default", seq: int = 0,
                                 np.asarray(mean, dtype=np.float64),
                                 np.asarray(cov, dtype=np.float64),
                                 smap.query(root, name) if samples else None))
-    return MapView(map_name, int(seq), dict(smap.options()), list(roots), frames)
+    return MapView(map_name, int(seq), dict(smap.options()), list(roots), frames,
+                   parents=dict(parents) if parents is not None else None)
 
 
 def is_planar(view: MapView, rel_tol: float = 1e-9) -> bool:
@@ -261,28 +182,94 @@ class LoadedMap:
     seq: int
     last_seq: int  # the map's last sequence number in the file
     notes: list[str]
+    parents: dict[str, str] = field(default_factory=dict)  # creating updates (robot paths)
 
 
-def recording_maps(path: str | os.PathLike[str]) -> dict[str, list[int]]:
-    """Map names of a recording and, for each, the running input count (all maps together)
-    after each of its inputs: ``counts[name][s - 1]`` inputs bring map ``name`` to seq ``s``.
+class ReplaySink:
+    """Passed to ``mcsm.recording.replay`` as its ``sink``: replay calls ``config`` with each
+    map's live state, ``input`` after applying each input, ``snapshot`` when it starts from
+    (or verifies) a state snapshot. This one follows one map and records the update that
+    created each of its frames (:class:`mcsm.viz.layout.FrameHistory`); subclasses draw."""
+
+    def __init__(self, map_name: str) -> None:
+        from mcsm.viz.layout import FrameHistory
+
+        self.map_name = map_name
+        self.state: Any = None
+        self.history = FrameHistory()
+        self.last_frames: tuple[str, ...] = ()  # what the last input named
+
+    def config(self, state: Any, *_args: Any, **_kw: Any) -> None:
+        if state.name == self.map_name:
+            self.state = state
+
+    def input(self, op: str, map_name: str, seq: int, recv_ns: int, _sender: str = "",
+              _request_id: str = "", request: bytes = b"") -> None:
+        if map_name != self.map_name or self.state is None:
+            return
+        try:
+            self.last_frames = self.history.observe_request(op, request, self.state.map)
+        except McsmError:
+            self.last_frames = ()
+            self.history.reset(self.state.map)  # unreadable: paths fall back to names
+        self.on_input(op, seq, recv_ns, _request_id)
+
+    def on_input(self, op: str, seq: int, recv_ns: int, request_id: str) -> None:
+        """Called after each input of the map (for subclasses)."""
+
+    def checkpoint(self, *_args: Any, **_kw: Any) -> None:
+        return None
+
+    def snapshot(self, state: Any, *_args: Any, **_kw: Any) -> None:
+        # replay started from (or verified) a state snapshot: a start from one loses the
+        # history before it; a verified one changes nothing
+        if state.name == self.map_name and not self.history.parent and state.seq:
+            self.history.reset(state.map)
+
+
+def recording_maps(path: str | os.PathLike[str] | Sequence[str | os.PathLike[str]]
+                   ) -> dict[str, list[int]]:
+    """Map names of a recording (one file, or a split recording's files in order) and, for
+    each, the running input count (all maps together) after each of its inputs:
+    ``counts[name][s - 1 - base]`` inputs bring map ``name`` to seq ``s``, where ``base`` is
+    :func:`recording_bases`' (0 unless the recording starts from a snapshot).
 
     Reads records only (no arithmetic). Raises ``RecordingError`` if the file is unreadable.
     """
+    return _scan(path)[0]
+
+
+def recording_bases(path: str | os.PathLike[str] | Sequence[str | os.PathLike[str]]
+                    ) -> dict[str, int]:
+    """Per map, the seq before its first input in the recording (0, or the seq of the snapshot
+    a restored or split file starts from)."""
+    return _scan(path)[1]
+
+
+def _scan(path: str | os.PathLike[str] | Sequence[str | os.PathLike[str]]
+          ) -> tuple[dict[str, list[int]], dict[str, int]]:
     from mcsm.recording import TOPIC_CONFIG, TOPIC_OPS, RecordingReader
 
+    paths = [path] if isinstance(path, (str, os.PathLike)) else list(path)
     counts: dict[str, list[int]] = {}
+    bases: dict[str, int] = {}
     n_inputs = 0
-    for item in RecordingReader(path):
-        name = item.data.get("map")
-        if not isinstance(name, str):
-            continue
-        if item.topic == TOPIC_CONFIG:
-            counts.setdefault(name, [])
-        elif item.topic in TOPIC_OPS:
-            n_inputs += 1
-            counts.setdefault(name, []).append(n_inputs)
-    return counts
+    for p in paths:
+        reader = RecordingReader(p)
+        for item in reader:
+            name = item.data.get("map")
+            if not isinstance(name, str):
+                continue
+            if item.topic == TOPIC_CONFIG:
+                counts.setdefault(name, [])
+            elif item.topic in TOPIC_OPS:
+                n_inputs += 1
+                if name not in bases:
+                    bases[name] = int(item.data.get("seq", 1)) - 1
+                counts.setdefault(name, []).append(n_inputs)
+        if not reader.complete:
+            break
+    return counts, bases
 
 
 def choose_map(names: list[str], wanted: str | None, path: str) -> str:
@@ -298,8 +285,8 @@ def choose_map(names: list[str], wanted: str | None, path: str) -> str:
     raise McsmError(f"{path} holds maps {', '.join(names)}: choose one with --map")
 
 
-def load_map(path: str | os.PathLike[str], map_name: str | None = None,
-             at_seq: int | None = None) -> LoadedMap:
+def load_map(path: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
+             map_name: str | None = None, at_seq: int | None = None) -> LoadedMap:
     """Replay a recording (``mcsm.recording.replay``) up to seq ``at_seq`` of one map.
 
     Parameters
@@ -316,17 +303,20 @@ def load_map(path: str | os.PathLike[str], map_name: str | None = None,
     """
     from mcsm.recording import replay
 
-    counts = recording_maps(path)
-    name = choose_map(list(counts), map_name, str(path))
-    last_seq = len(counts[name])
+    counts, bases = _scan(path)
+    label = str(path) if isinstance(path, (str, os.PathLike)) else ", ".join(map(str, path))
+    name = choose_map(list(counts), map_name, label)
+    base = bases.get(name, 0)
+    last_seq = base + len(counts[name])
     stop_after = None
     if at_seq is not None:
-        if not 1 <= at_seq <= last_seq:
-            raise McsmError(f"map {name!r} of {path} has sequence numbers 1..{last_seq}, "
-                            f"not {at_seq}")
+        if not base + 1 <= at_seq <= last_seq:
+            raise McsmError(f"map {name!r} of {label} has sequence numbers "
+                            f"{base + 1}..{last_seq}, not {at_seq}")
         # every input of every map up to this map's input number at_seq
-        stop_after = counts[name][at_seq - 1]
-    rep = replay(path, stop_after=stop_after)
+        stop_after = counts[name][at_seq - base - 1]
+    sink = ReplaySink(name)
+    rep = replay(path, stop_after=stop_after, sink=cast(Any, sink))
     notes = []
     if rep.divergence is not None:
         notes.append(f"replay diverged from the recording; showing the map as replayed up to "
@@ -336,7 +326,7 @@ def load_map(path: str | os.PathLike[str], map_name: str | None = None,
     st = rep.states.get(name)
     if st is None:
         raise McsmError(f"{path}: map {name!r} has no config record before seq {at_seq}")
-    return LoadedMap(st.map, name, st.seq, last_seq, notes)
+    return LoadedMap(st.map, name, st.seq, last_seq, notes, dict(sink.history.parent))
 
 
 def read_truth(path: str | os.PathLike[str]) -> dict[str, Array]:

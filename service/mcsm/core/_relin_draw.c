@@ -1,0 +1,471 @@
+/* mcsm's relinearisation, the parts around the solve (_relin.c): the moments of an input in
+ * the project's chart, pose transforms of estimates, the marginal prior of a factorisation,
+ * and the redraw of a component's edges from the posterior with a counter-based normal
+ * generator.
+ *
+ * The generator: a uniform from a 64-bit integer hash (splitmix64's finaliser) of a key and a
+ * counter, a normal by Marsaglia's polar method with our own logarithm (exponent from the bits,
+ * mantissa by the atanh series with a fixed number of terms): only +, -, *, / and sqrt, so
+ * every CPU draws the same numbers. Each normal has its own counter (variable, coordinate,
+ * sample), so nothing depends on the order in which they are drawn.
+ *
+ * Portability: _relin.h.
+ */
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "_relin.h"
+
+#define ZERO_VARIANCE 1e-20
+#define RTOL 1e-9
+#define CHUNK 64
+#define FULL_MAX (1L << 23)  /* normals held at once (64 MiB); beyond, drawn twice in chunks */
+#define LN2 0.69314718055994530942
+
+
+/* ------------------------------------------------------------------ moments of an input */
+
+/* Chordal mean of quaternion rows q (4 x n), aligned to the first sample, normalised. */
+static void chordal_mean(const double *q, long n, double *m) {
+    double s[4] = {0.0, 0.0, 0.0, 0.0};
+    for (long i = 0; i < n; i++) {
+        double dot = q[i] * q[0] + q[n + i] * q[n] + q[2 * n + i] * q[2 * n] +
+                     q[3 * n + i] * q[3 * n];
+        double sg = dot < 0.0 ? -1.0 : 1.0;
+        for (int k = 0; k < 4; k++) s[k] += sg * q[k * n + i];
+    }
+    double norm = sqrt(s[0] * s[0] + s[1] * s[1] + s[2] * s[2] + s[3] * s[3]);
+    for (int k = 0; k < 4; k++) m[k] = s[k] / norm;
+}
+
+/* The chart vector [t, 2 s vec(qm^-1 q)] of sample i (rows x), m = 6. */
+static void chart_of(const double *x, long n, long i, const double *qm, double *v) {
+    for (int k = 0; k < 3; k++) v[k] = x[k * n + i];
+    double qc[4] = {qm[0], -qm[1], -qm[2], -qm[3]};
+    double q[4] = {x[3 * n + i], x[4 * n + i], x[5 * n + i], x[6 * n + i]}, r[4];
+    mr_qmul(qc, q, r);
+    double sg = r[0] < 0.0 ? -1.0 : 1.0;
+    for (int k = 0; k < 3; k++) v[3 + k] = 2.0 * (sg * r[1 + k]);
+}
+
+/* The lower-triangular square-root information W (packed) of covariance c (m x m): every
+ * dimension scaled to unit variance, dimensions with variance below 1e-20 dropped, a Cholesky
+ * factorisation whose pivots below 1e-9 drop their dimension (nearly dependent on earlier
+ * ones), inverted. Dropped dimensions get zero rows and columns. */
+static void sqrt_information(const double *c, int m, double *w) {
+    double dsc[6], l[36], inv[36];
+    int live[6];
+    memset(l, 0, sizeof l);
+    memset(inv, 0, sizeof inv);
+    for (int i = 0; i < m; i++) {
+        live[i] = c[i * m + i] > ZERO_VARIANCE;
+        dsc[i] = live[i] ? sqrt(c[i * m + i]) : 0.0;
+    }
+    for (int j = 0; j < m; j++) {
+        if (!live[j]) continue;
+        double s = c[j * m + j] / (dsc[j] * dsc[j]);
+        for (int k = 0; k < j; k++) s -= l[j * m + k] * l[j * m + k];
+        if (!(s > RTOL)) {
+            live[j] = 0;
+            continue;
+        }
+        double ljj = sqrt(s);
+        l[j * m + j] = ljj;
+        for (int i = j + 1; i < m; i++) {
+            if (!live[i]) continue;
+            double t = c[i * m + j] / (dsc[i] * dsc[j]);
+            for (int k = 0; k < j; k++) t -= l[i * m + k] * l[j * m + k];
+            l[i * m + j] = t / ljj;
+        }
+    }
+    /* inv = L^-1 over the live dimensions (forward substitution, column by column) */
+    for (int j = 0; j < m; j++) {
+        if (!live[j]) continue;
+        inv[j * m + j] = 1.0 / l[j * m + j];
+        for (int i = j + 1; i < m; i++) {
+            if (!live[i]) continue;
+            double t = 0.0;
+            for (int k = j; k < i; k++) t += l[i * m + k] * inv[k * m + j];
+            inv[i * m + j] = -t / l[i * m + i];
+        }
+    }
+    for (int i = 0; i < m; i++)
+        for (int j = 0; j <= i; j++)
+            w[i * (i + 1) / 2 + j] = live[i] && live[j] ? inv[i * m + j] / dsc[j] : 0.0;
+}
+
+/* An input's mean z (t, q; a point: t, then the identity) and the square-root information W of
+ * its covariance in the chart around z (21 values, or 6 for a point), from its samples x
+ * (rows: 7 x n, or 3 x n for a point). */
+int mr_moments(const double *x, long n, int point, double *z, double *w) {
+    if (n < 2) return MR_BAD_ARGS;
+    int m = point ? 3 : 6;
+    for (int k = 0; k < 3; k++) {
+        double s = 0.0;
+        for (long i = 0; i < n; i++) s += x[k * n + i];
+        z[k] = s / (double)n;
+    }
+    if (point) {
+        z[3] = 1.0;
+        z[4] = z[5] = z[6] = 0.0;
+    } else {
+        chordal_mean(x + 3 * n, n, z + 3);
+    }
+    double mean[6] = {0, 0, 0, 0, 0, 0}, v[6], cov[36];
+    for (long i = 0; i < n; i++) {
+        if (point) for (int k = 0; k < 3; k++) v[k] = x[k * n + i];
+        else chart_of(x, n, i, z + 3, v);
+        for (int k = 0; k < m; k++) mean[k] += v[k];
+    }
+    for (int k = 0; k < m; k++) mean[k] = mean[k] / (double)n;
+    memset(cov, 0, sizeof cov);
+    for (long i = 0; i < n; i++) {
+        if (point) for (int k = 0; k < 3; k++) v[k] = x[k * n + i];
+        else chart_of(x, n, i, z + 3, v);
+        for (int k = 0; k < m; k++) v[k] -= mean[k];
+        for (int a = 0; a < m; a++)
+            for (int b = 0; b <= a; b++) cov[a * m + b] += v[a] * v[b];
+    }
+    for (int a = 0; a < m; a++)
+        for (int b = 0; b <= a; b++) {
+            cov[a * m + b] = cov[a * m + b] / (double)(n - 1);
+            cov[b * m + a] = cov[a * m + b];
+        }
+    sqrt_information(cov, m, w);
+    for (int k = 0; k < (point ? 6 : 21); k++)
+        if (!(w[k] - w[k] == 0.0)) return MR_NONFINITE;
+    for (int k = 0; k < 7; k++)
+        if (!(z[k] - z[k] == 0.0)) return MR_NONFINITE;
+    return MR_OK;
+}
+
+/* Mean poses (translation mean, chordal mean rotation; a point: the identity rotation) of
+ * frames idx[0..k) of a component's buffer (frames of 7 x n). */
+void mr_means(const double *rows, const int64_t *idx, long k, long n, const uint8_t *point,
+              double *out) {
+    for (long j = 0; j < k; j++) {
+        const double *x = rows + idx[j] * 7 * n;
+        double *o = out + 7 * j;
+        for (int c = 0; c < 3; c++) {
+            double s = 0.0;
+            for (long i = 0; i < n; i++) s += x[c * n + i];
+            o[c] = s / (double)n;
+        }
+        if (point[j]) {
+            o[3] = 1.0;
+            o[4] = o[5] = o[6] = 0.0;
+        } else {
+            chordal_mean(x + 3 * n, n, o + 3);
+        }
+    }
+}
+
+/* Spread of frames idx[0..k) in each chart coordinate: max_i |v_i - v_0| of [t, 2 vec(m^-1 q)]
+ * around the frame's chordal mean m (points: t only, the rest 0), k x 6. A coordinate in which
+ * no sample differs from the first does not vary in the map (a planar map's z, qx, qy). */
+void mr_spread(const double *rows, const int64_t *idx, long k, long n, const uint8_t *point,
+               double *out) {
+    for (long j = 0; j < k; j++) {
+        const double *x = rows + idx[j] * 7 * n;
+        double *o = out + 6 * j, m[4], v0[6], v[6];
+        for (int c = 0; c < 6; c++) o[c] = 0.0;
+        if (point[j]) {
+            for (long i = 0; i < n; i++)
+                for (int c = 0; c < 3; c++) {
+                    double d = x[c * n + i] - x[c * n];
+                    d = d < 0.0 ? -d : d;
+                    if (d > o[c]) o[c] = d;
+                }
+            continue;
+        }
+        chordal_mean(x + 3 * n, n, m);
+        chart_of(x, n, 0, m, v0);
+        for (long i = 0; i < n; i++) {
+            chart_of(x, n, i, m, v);
+            for (int c = 0; c < 6; c++) {
+                double d = v[c] - v0[c];
+                d = d < 0.0 ? -d : d;
+                if (d > o[c]) o[c] = d;
+            }
+        }
+    }
+}
+
+/* out_j = A o b_j with A = a or a^-1 (poses; a point keeps the identity rotation). */
+void mr_transform(const double *a, int invert, const double *b, const int32_t *kind, long k,
+                  double *out) {
+    double ta[3], qa[4] = {a[3], a[4], a[5], a[6]}, r[9];
+    if (invert) {
+        qa[1] = -qa[1];
+        qa[2] = -qa[2];
+        qa[3] = -qa[3];
+        mr_rotmat(qa, r);
+        for (int i = 0; i < 3; i++) ta[i] = -(r[i * 3] * a[0] + r[i * 3 + 1] * a[1] + r[i * 3 + 2] * a[2]);
+    } else {
+        mr_rotmat(qa, r);
+        for (int i = 0; i < 3; i++) ta[i] = a[i];
+    }
+    for (long j = 0; j < k; j++) {
+        const double *x = b + 7 * j;
+        double *o = out + 7 * j;
+        double t[3];
+        for (int i = 0; i < 3; i++) t[i] = r[i * 3] * x[0] + r[i * 3 + 1] * x[1] + r[i * 3 + 2] * x[2];
+        double q[4];
+        if (kind[j] == 0) {
+            mr_qmul(qa, x + 3, q);
+            double s = sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+            for (int i = 0; i < 4; i++) q[i] = q[i] / s;
+        } else {
+            q[0] = 1.0;
+            q[1] = q[2] = q[3] = 0.0;
+        }
+        for (int i = 0; i < 3; i++) o[i] = ta[i] + t[i];
+        for (int i = 0; i < 4; i++) o[3 + i] = q[i];
+    }
+}
+
+/* ------------------------------------------------------------------ the marginal prior */
+
+/* After mr_solve: the Gaussian of the kept variables with the others eliminated, as a
+ * square-root factor: cost = |R d_k + y_k|^2 with R = L_kk^T (rows: kept scalars in
+ * elimination order; columns: the full dimensions of the kept, non-fixed variables in
+ * ascending variable order) and y = L^-1 g. Rows of dimensions without information are 0. */
+int mr_marginal(const mr_problem *P, double *R, double *d) {
+    const mr_state *S = P->state;
+    if (S == NULL) return MR_BAD_ARGS;
+    long kp = S->kept_pos, s0 = S->soff[kp], m = S->nscal - s0;
+    long *colbase = malloc(sizeof(long) * (size_t)(P->nv ? P->nv : 1));
+    if (colbase == NULL) return MR_NO_MEMORY;
+    long cols = 0;
+    for (long v = 0; v < P->nv; v++) {
+        colbase[v] = -1;
+        if (!P->vfixed[v] && P->vkept[v]) {
+            colbase[v] = cols;
+            cols += P->vkind[v] == 0 ? 6 : 3;
+        }
+    }
+    memset(R, 0, sizeof(double) * (size_t)(m * cols));
+    for (long p = kp; p < S->ns; p++) {
+        int dp = S->dim[p];
+        const double *D = S->val + S->doff[p];
+        long cb = colbase[S->var_at[p]];
+        const int *ap = S->act + 6 * p;
+        for (int b = 0; b < dp; b++) {
+            long row = S->soff[p] + b - s0;
+            d[row] = S->dead[S->soff[p] + b] ? 0.0 : S->y[S->soff[p] + b];
+            if (S->dead[S->soff[p] + b]) continue;
+            for (int a = b; a < dp; a++) R[row * cols + cb + ap[a]] = D[a * dp + b];
+            for (long q = S->cptr[p]; q < S->cptr[p + 1]; q++) {
+                int u = S->crow[q], du = S->dim[u];
+                const double *L = S->val + S->boff[q];
+                long cu = colbase[S->var_at[u]];
+                const int *au = S->act + 6 * u;
+                for (int a = 0; a < du; a++) R[row * cols + cu + au[a]] = L[a * dp + b];
+            }
+        }
+    }
+    free(colbase);
+    return MR_OK;
+}
+
+/* ------------------------------------------------------------------ the generator */
+
+static inline uint64_t mix64(uint64_t z) {
+    z += 0x9E3779B97F4A7C15ULL;
+    z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ULL;
+    z = (z ^ (z >> 27)) * 0x94D049BB133111EBULL;
+    return z ^ (z >> 31);
+}
+
+/* log x for a normal x > 0: the exponent from the bits, log of the mantissa m in
+ * [sqrt(1/2), sqrt(2)) as 2 atanh(s) = 2 (s + s^3/3 + ... + s^23/23), s = (m - 1)/(m + 1),
+ * |s| <= 0.1716 (truncation below 2e-18). */
+static double mr_log(double x) {
+    uint64_t b;
+    memcpy(&b, &x, sizeof b);
+    int e = (int)((b >> 52) & 0x7ff) - 1023;
+    b = (b & 0x000fffffffffffffULL) | 0x3ff0000000000000ULL;
+    double m;
+    memcpy(&m, &b, sizeof m);
+    if (m > 1.4142135623730951) {
+        m = m * 0.5;
+        e += 1;
+    }
+    double s = (m - 1.0) / (m + 1.0), s2 = s * s;
+    static const double inv_odd[12] = {1.0, 1.0 / 3.0, 1.0 / 5.0, 1.0 / 7.0, 1.0 / 9.0,
+                                       1.0 / 11.0, 1.0 / 13.0, 1.0 / 15.0, 1.0 / 17.0,
+                                       1.0 / 19.0, 1.0 / 21.0, 1.0 / 23.0};
+    double t = inv_odd[11];
+    for (int k = 10; k >= 0; k--) t = t * s2 + inv_odd[k];
+    return (double)e * LN2 + 2.0 * (s * t);
+}
+
+/* The standard normal number `counter` of stream `key`. */
+static double normal_at(uint64_t key, uint64_t counter) {
+    uint64_t base = mix64(key ^ mix64(counter));
+    for (uint64_t a = 0; a < 64; a++) {
+        uint64_t h1 = mix64(base + 2 * a), h2 = mix64(base + 2 * a + 1);
+        double u = (double)(h1 >> 11) * 0x1.0p-52 - 1.0;
+        double v = (double)(h2 >> 11) * 0x1.0p-52 - 1.0;
+        double s = u * u + v * v;
+        if (s > 0.0 && s < 1.0) return u * sqrt(-2.0 * mr_log(s) / s);
+    }
+    return 0.0;
+}
+
+/* n normals of stream key from counter c0 (tests compare their moments with N(0, 1)). */
+void mr_normals(uint64_t key, uint64_t c0, long n, double *out) {
+    for (long i = 0; i < n; i++) out[i] = normal_at(key, c0 + (uint64_t)i);
+}
+
+/* ------------------------------------------------------------------ the redraw */
+
+/* Write chunk columns [i0, i0 + cn) of the kept variables' charts Z (rows: kept scalars,
+ * row stride `stride`, column c at Z[row * stride + c]) as edges x (+) delta into out. */
+static void write_edges(const mr_problem *P, const mr_state *S, const double *Z, long stride,
+                        long i0, long cn, double *out, const int64_t *slot, long n) {
+    long kp = S->kept_pos, s0 = S->soff[kp];
+    for (long p = kp; p < S->ns; p++) {
+        int v = S->var_at[p];
+        if (slot[v] < 0) continue;
+        double *o = out + slot[v] * 7 * n;
+        const double *xh = P->x + 7 * v;
+        long k0 = S->soff[p] - s0;
+        for (long c = 0; c < cn; c++) {
+            double d[6] = {0, 0, 0, 0, 0, 0};
+            for (int a = 0; a < S->dim[p]; a++) d[S->act[6 * p + a]] = Z[(k0 + a) * stride + c];
+            long i = i0 + c;
+            for (int t = 0; t < 3; t++) o[t * n + i] = xh[t] + d[t];
+            if (P->vkind[v] == 0) {
+                double q[4] = {xh[3], xh[4], xh[5], xh[6]};
+                mr_qretract(q, d + 3);
+                for (int t = 0; t < 4; t++) o[(3 + t) * n + i] = q[t];
+            } else {
+                o[3 * n + i] = 1.0;
+                o[4 * n + i] = o[5 * n + i] = o[6 * n + i] = 0.0;
+            }
+        }
+    }
+}
+
+static uint64_t counter0(const mr_state *S, long p, int a, long n) {
+    uint64_t v = (uint64_t)S->var_at[p];
+    return (v * 8 + (uint64_t)S->act[6 * p + a]) * (uint64_t)n;
+}
+
+/* Z (K x n) <- L^-1 Z with L L^T = Z Z^T / (n - 1): rows whose pivot vanishes (dead or
+ * dependent) are zeroed. Afterwards the rows' sample covariance is exactly the identity on
+ * the live rows. work: K * K doubles. */
+static void whiten_rows(double *Z, long K, long n, const uint8_t *dead, double *L) {
+    for (long i = 0; i < K; i++) {
+        for (long j = 0; j <= i; j++) {
+            double s = 0.0;
+            const double *zi = Z + i * n, *zj = Z + j * n;
+            for (long c = 0; c < n; c++) s += zi[c] * zj[c];
+            L[i * K + j] = s / (double)(n - 1);
+        }
+    }
+    for (long j = 0; j < K; j++) {
+        double s = L[j * K + j];
+        for (long k = 0; k < j; k++) s -= L[j * K + k] * L[j * K + k];
+        if (dead[j] || !(s > 1e-12)) {
+            L[j * K + j] = 0.0;
+            for (long i = j + 1; i < K; i++) L[i * K + j] = 0.0;
+            continue;
+        }
+        double l = sqrt(s);
+        L[j * K + j] = l;
+        for (long i = j + 1; i < K; i++) {
+            double t = L[i * K + j];
+            for (long k = 0; k < j; k++) t -= L[i * K + k] * L[j * K + k];
+            L[i * K + j] = t / l;
+        }
+    }
+    for (long i = 0; i < K; i++) {
+        double *zi = Z + i * n;
+        double l = L[i * K + i];
+        if (l == 0.0) {
+            for (long c = 0; c < n; c++) zi[c] = 0.0;
+            continue;
+        }
+        for (long k = 0; k < i; k++) {
+            double lk = L[i * K + k];
+            if (lk == 0.0) continue;
+            const double *zk = Z + k * n;
+            for (long c = 0; c < n; c++) zi[c] -= lk * zk[c];
+        }
+        for (long c = 0; c < n; c++) zi[c] = zi[c] / l;
+    }
+}
+
+/* After mr_solve: N samples of the kept variables from the Gaussian around the solution with
+ * covariance (L_kk L_kk^T)^-1, written as edges (7 rows of n) into out at frame slot[v]
+ * (variables with slot < 0 are skipped). Each coordinate's normals are centred on their
+ * sample mean, so every edge's mean in the chart is the solution. When the kept dimensions K
+ * are fewer than n (and at most exact_max), the normals are also whitened so that their sample
+ * covariance is the identity: the samples' covariance is then the posterior's, with no sampling
+ * error (second-order exact sampling); otherwise they are independent draws. */
+int mr_redraw(const mr_problem *P, double *out, const int64_t *slot, long n, uint64_t key,
+              long exact_max) {
+    const mr_state *S = P->state;
+    if (S == NULL || n < 2) return MR_BAD_ARGS;
+    long kp = S->kept_pos, s0 = S->soff[kp], K = S->nscal - s0;
+    const uint8_t *dead = S->dead + s0;
+    int exact = K < n && K <= exact_max;
+    if (exact || K * n <= FULL_MAX) {  /* all normals at once (the same bits as in chunks) */
+        double *Z = malloc(sizeof(double) * (size_t)(K ? K : 1) * (size_t)n);
+        double *L = exact ? malloc(sizeof(double) * (size_t)(K ? K * K : 1)) : NULL;
+        if (Z == NULL || (exact && L == NULL)) {
+            free(Z);
+            free(L);
+            return MR_NO_MEMORY;
+        }
+        for (long p = kp; p < S->ns; p++)
+            for (int a = 0; a < S->dim[p]; a++) {
+                uint64_t c0 = counter0(S, p, a, n);
+                double *z = Z + (S->soff[p] + a - s0) * n, m = 0.0;
+                for (long i = 0; i < n; i++) {
+                    z[i] = normal_at(key, c0 + (uint64_t)i);
+                    m += z[i];
+                }
+                m = m / (double)n;
+                for (long i = 0; i < n; i++) z[i] = z[i] - m;
+            }
+        if (exact) whiten_rows(Z, K, n, dead, L);
+        free(L);
+        mr_backward(S, Z, kp, n, n);
+        write_edges(P, S, Z, n, 0, n, out, slot, n);
+        free(Z);
+        return MR_OK;
+    }
+    double *zbar = malloc(sizeof(double) * (size_t)(K ? K : 1));
+    double *Z = malloc(sizeof(double) * (size_t)(K ? K : 1) * CHUNK);
+    if (zbar == NULL || Z == NULL) {
+        free(zbar);
+        free(Z);
+        return MR_NO_MEMORY;
+    }
+    for (long p = kp; p < S->ns; p++)
+        for (int a = 0; a < S->dim[p]; a++) {
+            uint64_t c0 = counter0(S, p, a, n);
+            double s = 0.0;
+            for (long i = 0; i < n; i++) s += normal_at(key, c0 + (uint64_t)i);
+            zbar[S->soff[p] + a - s0] = s / (double)n;
+        }
+    for (long i0 = 0; i0 < n; i0 += CHUNK) {
+        long cn = n - i0 < CHUNK ? n - i0 : CHUNK;
+        for (long p = kp; p < S->ns; p++)
+            for (int a = 0; a < S->dim[p]; a++) {
+                uint64_t c0 = counter0(S, p, a, n) + (uint64_t)i0;
+                long k = S->soff[p] + a - s0;
+                for (long c = 0; c < cn; c++)
+                    Z[k * CHUNK + c] = normal_at(key, c0 + (uint64_t)c) - zbar[k];
+            }
+        mr_backward(S, Z, kp, CHUNK, cn);
+        write_edges(P, S, Z, CHUNK, i0, cn, out, slot, n);
+    }
+    free(zbar);
+    free(Z);
+    return MR_OK;
+}

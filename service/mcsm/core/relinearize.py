@@ -1,0 +1,396 @@
+"""Relinearisation: bring a component back to the maximum a posteriori estimate of everything
+it has seen and redraw its samples around it with the posterior's joint covariance.
+
+For one component: every factor of its history (:mod:`mcsm.core.factors`) with the root fixed
+(the star forest is conditional on it) is solved by Gauss-Newton / Levenberg-Marquardt in the
+compiled kernel (:mod:`mcsm.core.relin`), starting from the map's own means for the frames it
+holds and the recorded estimates of removed ones; removed frames are eliminated first, so the
+kept frames' joint covariance conditional on the root is the factorisation's trailing block;
+then N joint samples are drawn from it (a counter-based generator keyed by the history's
+counters), centred so that every edge's mean in the chart is the solution, and written as the
+component's root→frame edges (star forest, sample order and O(N) queries kept). Removed frames'
+estimates move to the solution too.
+
+The history is bounded (:meth:`FactorHistory.over_bound`): beyond its bound the oldest removed
+variables are marginalised, at their current estimates, into a dense Gaussian prior on the
+variables they touch (:func:`marginalise`).
+
+:class:`Policy` says when a map relinearises on its own (docs/design.md, "Relinearisation",
+gives the measurements behind the defaults).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import numpy.typing as npt
+
+from mcsm.core import kernel, relin
+from mcsm.core.factors import IDENTITY, FactorHistory, Prior
+from mcsm.core.gate import chi2_quantile
+from mcsm.core.storage import to_rows
+from mcsm.errors import InvalidOperation, McsmError, NumericalError
+
+if TYPE_CHECKING:
+    from mcsm.core.smap import StochasticMap
+
+Array = npt.NDArray[np.float64]
+
+DEFAULT_HISTORY_BYTES = 8 * 2**20
+"""The history's default bound: about 30,000 inputs with their frames (Victoria Park: 10,608
+inputs, 2.8 MB; city10000: 20,687 edges and 10,000 poses, 5.6 MB), small enough that a
+long-running bounded map stays a bounded server."""
+REGATE_WINDOW = 8
+"""Gated closures over which :attr:`Policy.regate` counts failures."""
+MAX_ITERATIONS = 20
+TOLERANCE = 1e-6
+TRIM_QUANTILE = 0.999
+"""A gated loop closure whose chi-square at the solution exceeds this quantile for its dof is
+left out of that relinearisation (the whole history contradicts it)."""
+_MASK = 2**64 - 1
+
+
+@dataclass(frozen=True)
+class Policy:
+    """When a map relinearises a component on its own (none of these is a wall-clock rule:
+    replay reproduces every one). ``Policy()`` never does; :data:`RECOMMENDED` is what
+    docs/design.md measured on real data.
+
+    nis : after an accepted loop closure whose NIS exceeds this chi-square quantile for its
+        dof (None: never)
+    every : when the component has had this many inputs since its last relinearisation
+        (None: never)
+    regate : when a loop closure fails the gate and at least this many of the last
+        :data:`REGATE_WINDOW` gated closures of the map failed (it included), relinearise and
+        gate it again once (the rejection, if it stays, says so in its verdict); 1: at every
+        failure; None: never
+    gap : at least this many inputs of the component since its last relinearisation before
+        ``nis`` or ``regate`` relinearises it again
+    """
+
+    nis: float | None = None
+    every: int | None = None
+    regate: int | None = None
+    gap: int = 25
+
+    def __post_init__(self) -> None:
+        if self.nis is not None and not (isinstance(self.nis, (int, float))
+                                         and not isinstance(self.nis, bool)
+                                         and 0.0 < self.nis < 1.0):
+            raise InvalidOperation(f"relinearise nis must be None or a quantile in (0, 1), "
+                                   f"got {self.nis!r}")
+        for name in ("every", "gap", "regate"):
+            v = getattr(self, name)
+            if (v is not None or name == "gap") and not (
+                    isinstance(v, int) and not isinstance(v, bool) and v >= 1):
+                raise InvalidOperation(f"relinearise {name} must be an integer >= 1, got {v!r}")
+        if self.regate is not None and self.regate > REGATE_WINDOW:
+            raise InvalidOperation(f"relinearise regate must be at most {REGATE_WINDOW}")
+
+    def to_plain(self) -> dict[str, Any]:
+        return {"nis": self.nis, "every": self.every, "regate": self.regate, "gap": self.gap}
+
+    @classmethod
+    def from_plain(cls, d: dict[str, Any]) -> Policy:
+        nis, every, regate = d.get("nis"), d.get("every"), d.get("regate")
+        if isinstance(regate, bool):  # True: at every failure
+            regate = 1 if regate else None
+        return cls(None if nis is None else float(nis), None if every is None else int(every),
+                   None if regate is None else int(regate), int(d.get("gap", 1)))
+
+
+@dataclass(frozen=True)
+class ComponentRelin:
+    """One component's relinearisation: its root, frames redrawn, variables and factors
+    solved, Gauss-Newton iterations, cost (sum of squared whitened errors) before and after,
+    loop closures left out (trimmed), or why it was skipped."""
+
+    root: str
+    frames: int = 0
+    variables: int = 0
+    factors: int = 0
+    iterations: int = 0
+    cost_before: float = 0.0
+    cost_after: float = 0.0
+    trimmed: int = 0
+    skipped: str = ""
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"root": self.root, "frames": self.frames, "variables": self.variables,
+                "factors": self.factors, "iterations": self.iterations,
+                "cost_before": self.cost_before, "cost_after": self.cost_after,
+                "trimmed": self.trimmed, "skipped": self.skipped}
+
+
+@dataclass(frozen=True)
+class RelinReport:
+    """What a relinearisation did: ``trigger`` (request, nis, every, gate), its components,
+    and the wall time it took (not part of the map's state)."""
+
+    trigger: str
+    components: tuple[ComponentRelin, ...]
+    time_s: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"trigger": self.trigger, "time_s": self.time_s,
+                "components": [c.to_dict() for c in self.components]}
+
+
+RECOMMENDED = Policy(nis=0.95, regate=1, gap=25)
+"""The policy that brought Victoria Park to the batch optimum's neighbourhood (docs/design.md,
+"Relinearisation"): not the default, because a relinearisation trusts every accepted input
+fully, and wrong closures the gate let through then cost more than in the filter."""
+
+
+def _key(h: FactorHistory, cid: int) -> int:
+    return (h.n_inputs * 0x9E3779B97F4A7C15 + h.n_relin * 0xBF58476D1CE4E5B9
+            + cid * 0x94D049BB133111EB + 0x2545F4914F6CDD1D) & _MASK
+
+
+def host_rows(smap: StochasticMap, cid: int) -> tuple[Array, npt.NDArray[np.uint8]]:
+    """Component ``cid``'s edges as host rows ``(M, 7, N)`` (a copy) and its point flags: the
+    only way this module reads a component, whatever memory it lives in."""
+    c = smap._comps[cid]
+    return to_rows(c.edges()), np.array(c.point_list(), dtype=np.uint8)
+
+
+def replace_rows(smap: StochasticMap, cid: int, rows: Array) -> None:
+    """Component ``cid`` with the same frames and the edges ``rows`` (host, ``(M, 7, N)``):
+    the only way this module writes one. A map on a device gets the rows uploaded (one
+    whole-component transfer: the redraw itself runs in the CPU kernel, docs/kernel.md)."""
+    c = smap._comps[cid]
+    smap._comps[cid] = smap._store(list(c.frames), c.point_list(), rows)
+    smap._spare = None
+
+
+def estimates(smap: StochasticMap, h: FactorHistory, cid: int, ids: npt.NDArray[np.int64],
+              rows: Array, flags: npt.NDArray[np.uint8]) -> Array:
+    """Estimates of variables ``ids`` (of group ``cid``) in its root's frame: the map's means
+    for frames it holds (from its host ``rows``), the recorded ones for removed frames."""
+    c = smap._comps[cid]
+    kind = h.vars["kind"][ids]
+    x = relin.transform(h.groups[cid].world, h.vars["est"][ids], kind, invert=True)
+    alive = np.flatnonzero(h.vars["alive"][ids])
+    if len(alive):
+        idx = np.array([c.index[h.frame_of[int(v)]] for v in ids[alive]], dtype=np.int64)
+        x[alive] = relin.means(rows, idx, flags[idx])
+    root = h.var_of.get(c.root)
+    if root is not None:
+        x[ids == root] = IDENTITY
+    return np.ascontiguousarray(x)
+
+
+def _trim_thresholds(robust: npt.NDArray[np.uint8], w: Array, kind: npt.NDArray[np.int32]
+                     ) -> Array:
+    """Per factor: the chi-square quantile :data:`TRIM_QUANTILE` for its live dimensions (the
+    nonzero diagonal of its square-root information) if it is a gated loop closure, else 0."""
+    diag6 = w[:, [0, 2, 5, 9, 14, 20]] != 0.0
+    diag3 = w[:, [0, 2, 5]] != 0.0
+    dof = np.where(kind == 0, diag6.sum(axis=1), diag3.sum(axis=1))
+    table = {d: chi2_quantile(TRIM_QUANTILE, int(d)) for d in np.unique(dof) if d > 0}
+    out = np.zeros(len(robust))
+    for i in np.flatnonzero(robust):
+        out[i] = table.get(int(dof[i]), 0.0)
+    return out
+
+
+def active_coordinates(rows: Array, flags: npt.NDArray[np.uint8]) -> tuple[int, int]:
+    """Bit masks of the pose (x y z rx ry rz) and point (x y z) coordinates in which some frame
+    of a component (host ``rows``, root first) other than its root varies: the others (a planar
+    map's z, qx, qy; rotations an input never let vary) are held, as the filter holds them."""
+    idx = np.arange(1, len(rows), dtype=np.int64)
+    sp = relin.spread(rows, idx, flags[idx])
+    masks = []
+    for point, width in ((False, 6), (True, 3)):
+        sel = flags[idx].astype(bool) == point
+        live = np.any(sp[sel] > 0.0, axis=0)[:width] if np.any(sel) else np.ones(width, bool)
+        masks.append(int(sum(1 << k for k in range(width) if live[k])))
+    return masks[0], masks[1]
+
+
+def _problem(smap: StochasticMap, h: FactorHistory, cid: int, ids: npt.NDArray[np.int64],
+             fmask: npt.NDArray[np.bool_], priors: list[Prior], kept: npt.NDArray[np.uint8]
+             ) -> relin.Problem:
+    rows, flags = host_rows(smap, cid)
+    local = np.full(h.vars.n, -1, dtype=np.int64)
+    local[ids] = np.arange(len(ids))
+    root = h.var_of[smap._comps[cid].root]
+    fv = local[h.factors["vars"][fmask]].astype(np.int32)
+    pvoff, pvars, pdoff, prows, pdata = [0], [], [0], [], []
+    for p in priors:
+        pvars.append(local[p.vars].astype(np.int32))
+        pvoff.append(pvoff[-1] + len(p.vars))
+        block = np.concatenate([p.zhat.ravel(), p.r.ravel(), p.d])
+        pdata.append(block)
+        pdoff.append(pdoff[-1] + len(block))
+        prows.append(p.r.shape[0])
+    pose_active, point_active = active_coordinates(rows, flags)
+    return relin.Problem(
+        pose_active=pose_active, point_active=point_active,
+        ftrim=_trim_thresholds(h.factors["robust"][fmask], h.factors["w"][fmask],
+                               h.factors["kind"][fmask]),
+        vkind=np.ascontiguousarray(h.vars["kind"][ids], dtype=np.int32),
+        vfixed=(ids == root).astype(np.uint8), vkept=kept,
+        x=estimates(smap, h, cid, ids, rows, flags),
+        fkind=np.ascontiguousarray(h.factors["kind"][fmask], dtype=np.int32),
+        fvars=np.ascontiguousarray(fv), fz=np.ascontiguousarray(h.factors["z"][fmask]),
+        fw=np.ascontiguousarray(h.factors["w"][fmask]),
+        pvoff=np.array(pvoff, dtype=np.int64),
+        pvars=np.concatenate(pvars) if pvars else np.zeros(0, np.int32),
+        pdoff=np.array(pdoff, dtype=np.int64), prows=np.array(prows, dtype=np.int64),
+        pdata=np.concatenate(pdata) if pdata else np.zeros(0))
+
+
+def why_not(smap: StochasticMap, cid: int) -> str:
+    """Why component ``cid`` cannot be relinearised ("" if it can)."""
+    h = smap.factor_history
+    if h is None:
+        return "this map keeps no history (options: history=None)"
+    g = h.groups.get(cid)
+    if g is None:
+        return "no history"
+    if g.tainted:
+        return g.tainted
+    c = smap._comps[cid]
+    if len(c) < 2:
+        return "a single frame"
+    if any(f not in h.var_of for f in c.frames):
+        return "frames without history"
+    return ""
+
+
+def relinearize_component(smap: StochasticMap, cid: int) -> ComponentRelin:
+    """Solve component ``cid`` over its whole history and redraw its edges (see the module
+    docstring). A skipped component changes nothing; a failure raises and changes nothing."""
+    c = smap._comps[cid]
+    reason = why_not(smap, cid)
+    if reason:
+        return ComponentRelin(c.root, skipped=reason)
+    h = smap.factor_history
+    assert h is not None
+    ids = h.group_vars(cid)
+    fmask = h.vars["group"][h.factors["vars"][:, 0]] == cid
+    gset = set(ids.tolist())
+    priors = [p for p in h.priors if int(p.vars[0]) in gset]
+    kept = h.vars["alive"][ids].astype(np.uint8)
+    prob = _problem(smap, h, cid, ids, fmask, priors, kept)
+    with relin.solve(prob, max_iter=MAX_ITERATIONS, tol=TOLERANCE) as sol:
+        slot = np.full(len(ids), -1, dtype=np.int64)
+        alive = np.flatnonzero(kept)
+        slot[alive] = [c.index[h.frame_of[int(v)]] for v in ids[alive]]
+        slot[ids == h.var_of[c.root]] = -1
+        out, flags = host_rows(smap, cid)
+        sol.redraw(out, slot, _key(h, cid))
+        st = sol.stats
+    m = len(c)
+    if kernel.canonicalize_frames(out, flags, 1, m, False) != kernel.OK or \
+            not np.isfinite(out).all():
+        raise NumericalError("the relinearisation produced non-finite samples")
+    replace_rows(smap, cid, out)
+    h.vars["est"][ids] = relin.transform(h.groups[cid].world, prob.x, prob.vkind)
+    h.groups[cid].since = 0
+    h.n_relin += 1
+    return ComponentRelin(c.root, m, len(ids), int(np.count_nonzero(fmask)) + len(priors),
+                          st.iterations, st.cost_before, st.cost_after, st.trimmed)
+
+
+def relinearize(smap: StochasticMap, cids: list[int], trigger: str) -> RelinReport:
+    """Relinearise components ``cids`` in order; the report. A component whose solve fails is
+    left as it was and reported as skipped (never raised: an automatic relinearisation runs
+    after its update was applied)."""
+    t0 = time.perf_counter()
+    comps = []
+    for cid in cids:
+        try:
+            comps.append(relinearize_component(smap, cid))
+        except McsmError as exc:
+            comps.append(ComponentRelin(smap._comps[cid].root,
+                                        skipped=f"failed: {type(exc).__name__}: {exc}"))
+    return RelinReport(trigger, tuple(comps), time.perf_counter() - t0)
+
+
+def marginalise(smap: StochasticMap) -> int:
+    """While the history is over its bound: marginalise the oldest quarter of the removed
+    variables of the component holding the oldest one into a dense prior on the variables
+    they touch (at their current estimates), until the history is at 3/4 of its bound or no
+    removed variable is left. Returns how many variables went."""
+    h = smap.factor_history
+    assert h is not None
+    target = h.bound_bytes * 3 // 4
+    gone = 0
+    while h.nbytes() > target:
+        removed = np.flatnonzero(h.vars["alive"] == 0)
+        if not len(removed):
+            break
+        cid = int(h.vars["group"][removed[0]])
+        mine = removed[h.vars["group"][removed] == cid]
+        s = mine[: max(1, (len(mine) + 3) // 4)]
+        root = h.var_of.get(smap._comps[cid].root)
+        if root is None or h.vars["kind"][root] != 0:
+            break  # a component rooted at a point anchors no prior: over the bound for now
+        try:
+            _marginalise_set(smap, h, cid, s)
+        except McsmError:  # never raised out of an applied update; tried again next time
+            break
+        gone += len(s)
+    _trim_heap()
+    return gone
+
+
+def _trim_heap() -> None:
+    """Give the C heap's free pages back to the system after a marginalisation (glibc keeps
+    the solve's freed blocks otherwise, and a bounded map would not stay a bounded process)."""
+    if _LIBC is not None:
+        _LIBC.malloc_trim(0)
+
+
+def _libc() -> Any:
+    import ctypes
+    import ctypes.util
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        libc.malloc_trim.argtypes = [ctypes.c_size_t]
+        return libc
+    except (OSError, AttributeError):  # not glibc
+        return None
+
+
+_LIBC = _libc()
+
+
+def _marginalise_set(smap: StochasticMap, h: FactorHistory, cid: int,
+                     s: npt.NDArray[np.int64]) -> None:
+    in_s = np.zeros(h.vars.n, dtype=bool)
+    in_s[s] = True
+    fv = h.factors["vars"]
+    fmask = in_s[fv[:, 0]] | in_s[fv[:, 1]]
+    priors = [p for p in h.priors if np.any(in_s[p.vars])]
+    root = h.var_of[smap._comps[cid].root]
+    touched = [fv[fmask].ravel(), np.array([root])] + [p.vars for p in priors]
+    ids = np.unique(np.concatenate(touched).astype(np.int64))
+    kept = (~in_s[ids]).astype(np.uint8)
+    prob = _problem(smap, h, cid, ids, fmask, priors, kept)
+    border = ids[(kept != 0) & (ids != root)]
+    if len(border):
+        with relin.solve(prob, max_iter=0) as sol:
+            r, d = sol.marginal()
+        live = np.any(r != 0.0, axis=1) | (d != 0.0)
+        if np.any(live):
+            sel = (kept != 0) & (ids != root)
+            h.priors.append(Prior(np.concatenate([[root], border]).astype(np.int32),
+                                  np.ascontiguousarray(prob.x[sel]),
+                                  np.ascontiguousarray(r[live]), np.ascontiguousarray(d[live])))
+    h._delete_vars(in_s)
+    h.n_marginalised += len(s)
+
+
+__all__ = ["Policy", "RECOMMENDED", "RelinReport", "ComponentRelin", "relinearize",
+           "relinearize_component", "marginalise", "why_not", "estimates",
+           "DEFAULT_HISTORY_BYTES", "REGATE_WINDOW", "TRIM_QUANTILE"]

@@ -1,0 +1,292 @@
+"""Relinearisation: the factor history, the kernel's solve against exact and independent
+references, the redraw's moments, the history's bound, snapshots and digests."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from mcsm import StochasticMap
+from mcsm.core import relin
+from mcsm.core.quat import qmul, rotation_matrix
+from mcsm.core.relinearize import _problem
+from mcsm.errors import InvalidOperation
+from mcsm_client.sampling import sample_planar
+from scipy.optimize import least_squares
+
+from tests.helpers import random_at
+
+IDENTITY_Q = np.array([1.0, 0.0, 0.0, 0.0])
+
+
+def translation_samples(rng: np.random.Generator, n: int, mean: list[float], sd: float
+                        ) -> np.ndarray:
+    """(n, 7) ATs with exact identity rotations and correlated Gaussian translations."""
+    a = rng.standard_normal((3, 3)) * sd
+    x = np.zeros((n, 7))
+    x[:, :3] = np.asarray(mean) + rng.standard_normal((n, 3)) @ a.T
+    x[:, 3] = 1.0
+    return x
+
+
+def test_a_linear_gaussian_chain_relinearises_to_the_exact_posterior() -> None:
+    """Translation-only inputs (rotations exactly the identity, so no information on them):
+    the problem is linear-Gaussian and the posterior of the recorded moments is exact. The
+    redrawn edges' means equal it within 1e-9 and their sample covariance the exact one within
+    4 standard errors (the redraw is second-order exact here, so far tighter)."""
+    rng = np.random.default_rng(20261201)
+    n = 1500
+    m = StochasticMap(n, gate=None, relinearize=None)
+    inputs: list[tuple[str, str, np.ndarray]] = []
+    for a, b, mean in (("x0", "x1", [1, 0, 0]), ("x1", "x2", [1, 0.2, 0.1]),
+                       ("x2", "x3", [0.8, 0.5, 0]), ("x3", "x4", [0, 1, -0.1]),
+                       ("x0", "x3", [2.9, 0.6, 0.0]), ("x1", "x4", [1.7, 1.8, 0.1])):
+        x = translation_samples(rng, n, mean, 0.05)
+        inputs.append((a, b, x))
+        m.update(a, b, x)
+    for a, mean in (("x1", [0.5, 2.0, 0.3]), ("x3", [-1.3, 1.5, 0.2]), ("x4", [-1.4, 0.6, 0.3])):
+        p = np.asarray(mean) + 0.1 * rng.standard_normal((n, 3))
+        inputs.append((a, "l0", p))
+        m.update(a, "l0", p)
+    m.remove("x2")  # a removed frame: eliminated first, its information kept
+    rep = m.relinearize()
+    assert rep.components[0].frames == 5 and rep.components[0].variables == 6
+    # exact posterior of t1..t4, l0 given t0 = 0: linear least squares on the moments
+    idx = {"x1": 0, "x2": 1, "x3": 2, "x4": 3, "l0": 4}
+    rows, rhs, weights = [], [], []
+    for a, b, x in inputs:
+        t = x[:, :3]
+        info = np.linalg.inv(np.cov(t.T))
+        blk = np.zeros((3, 15))
+        if a in idx:
+            blk[:, 3 * idx[a]: 3 * idx[a] + 3] = -np.eye(3)
+        blk[:, 3 * idx[b]: 3 * idx[b] + 3] = np.eye(3)
+        rows.append(blk)
+        rhs.append(t.mean(axis=0))
+        weights.append(info)
+    h = sum(r.T @ w @ r for r, w in zip(rows, weights, strict=True))
+    g = sum(r.T @ w @ z for r, w, z in zip(rows, weights, rhs, strict=True))
+    cov = np.linalg.inv(h)
+    mean = cov @ g
+    kept = [0, 2, 3, 4]
+    got = np.concatenate([m.query("x0", f)[:, :3] for f in ("x1", "x3", "x4", "l0")], axis=1)
+    want_mean = np.concatenate([mean[3 * k: 3 * k + 3] for k in kept])
+    sel = np.concatenate([np.arange(3 * k, 3 * k + 3) for k in kept])
+    want_cov = cov[np.ix_(sel, sel)]
+    assert np.max(np.abs(got.mean(axis=0) - want_mean)) < 1e-9
+    sd = np.sqrt(want_cov**2 + np.outer(np.diag(want_cov), np.diag(want_cov))) / np.sqrt(n)
+    assert np.all(np.abs(np.cov(got.T) - want_cov) < 4.0 * sd)
+    # the rotations carried no information: they stay exactly the identity, no spread
+    for f in ("x1", "x3", "x4", "l0"):
+        assert np.array_equal(m.query("x0", f)[:, 3:], np.tile(IDENTITY_Q, (n, 1)))
+
+
+def step_at(rng: np.random.Generator, n: int, planar: bool) -> np.ndarray:
+    """An odometry-like AT: planar (x, y, yaw only) or a 3-D cloud."""
+    if planar:
+        mean = np.array([1.0, 0.2, 0.3]) + 0.1 * rng.standard_normal(3)
+        return sample_planar(mean, np.diag([0.01, 0.01, 0.003]), n_samples=n, rng=rng)
+    return random_at(rng, n, kind="cloud", t_sigma=0.1, r_sigma=0.05)
+
+
+def _ref_residuals(x_all: np.ndarray, kinds: np.ndarray, fvars: np.ndarray, fz: np.ndarray,
+                   fw: np.ndarray, fkind: np.ndarray) -> np.ndarray:
+    """The factors' whitened errors, written independently of the kernel (numpy)."""
+    out = []
+    for k, (a, b), z, wp in zip(fkind, fvars, fz, fw, strict=True):
+        m = 6 if k == 0 else 3
+        w = np.zeros((m, m))
+        w[np.tril_indices(m)] = wp[: m * (m + 1) // 2]
+        ra = rotation_matrix(x_all[a, 3:])
+        et = ra.T @ (x_all[b, :3] - x_all[a, :3]) - z[:3]
+        if k == 1:
+            out.append(w @ et)
+            continue
+        qh = qmul(x_all[a, 3:] * [1, -1, -1, -1], x_all[b, 3:])
+        r = qmul(z[3:] * [1, -1, -1, -1], qh)
+        er = 2.0 * np.sign(r[0] if r[0] != 0 else 1.0) * r[1:]
+        out.append(w @ np.concatenate([et, er]))
+    return np.concatenate(out)
+
+
+def _rotvec_quat(v: np.ndarray) -> np.ndarray:
+    th = np.linalg.norm(v)
+    if th < 1e-12:
+        return np.concatenate([[1.0], 0.5 * v])
+    return np.concatenate([[np.cos(th / 2)], np.sin(th / 2) * v / th])
+
+
+@pytest.mark.parametrize("planar", [True, False])
+def test_the_kernel_solve_agrees_with_an_independent_least_squares(planar: bool) -> None:
+    """A small graph (poses, points, a loop, a removed pose): the kernel's Gauss-Newton
+    solution and the kept variables' covariance against scipy's least squares on the same
+    recorded moments, with the errors written again in numpy and an exact exponential map."""
+    rng = np.random.default_rng(20261202 + planar)
+    n = 400
+    m = StochasticMap(n, gate=None, relinearize=None)
+    for k in range(5):
+        m.update(f"p{k}", f"p{k + 1}", step_at(rng, n, planar))
+        if k % 2 == 0:
+            pts = np.array([1.0, 0.5, 0.0 if planar else 0.3]) + 0.05 * rng.standard_normal(
+                (n, 3)) * ([1, 1, 0] if planar else 1)
+            m.update(f"p{k}", f"l{k}", pts)
+    m.update("p0", "p5", m.query("p0", "p5")[rng.permutation(n)])
+    m.update("p5", "l0", m.query("p5", "l0")[:, :3][rng.permutation(n)])
+    m.remove("p2")
+    h = m.factor_history
+    assert h is not None
+    cid = m._where["p0"]
+    ids = h.group_vars(cid)
+    fmask = h.vars["group"][h.factors["vars"][:, 0]] == cid
+    prob = _problem(m, h, cid, ids, fmask, [], h.vars["alive"][ids].astype(np.uint8))
+    x0 = prob.x.copy()
+    with relin.solve(prob, max_iter=50, tol=1e-15) as sol:
+        r_ours, _ = sol.marginal()
+        assert sol.stats.active == ((0b011 << 6 | 0b100011) if planar else 0b111_111111)
+    free = np.flatnonzero(prob.vfixed == 0)
+    kinds = prob.vkind
+    local = np.searchsorted(ids, h.factors["vars"][fmask])
+
+    pose_act = [k for k in range(6) if prob.pose_active >> k & 1]
+    point_act = [k for k in range(3) if prob.point_active >> k & 1]
+
+    def unpack(p: np.ndarray, base: np.ndarray) -> np.ndarray:
+        x = base.copy()
+        off = 0
+        for v in free:
+            act = pose_act if kinds[v] == 0 else point_act
+            d = np.zeros(6)
+            d[act] = p[off: off + len(act)]
+            off += len(act)
+            x[v, :3] = base[v, :3] + d[:3]
+            if kinds[v] == 0:
+                x[v, 3:] = qmul(base[v, 3:], _rotvec_quat(d[3:]))
+        return x
+
+    dims = sum(len(pose_act) if kinds[v] == 0 else len(point_act) for v in free)
+
+    def fun(p: np.ndarray, base: np.ndarray) -> np.ndarray:
+        return _ref_residuals(unpack(p, base), kinds, local, h.factors["z"][fmask],
+                              h.factors["w"][fmask], h.factors["kind"][fmask])
+
+    ref = least_squares(fun, np.zeros(dims), args=(x0,), xtol=1e-15, ftol=1e-15, gtol=1e-15)
+    x_ref = unpack(ref.x, x0)
+    assert np.max(np.abs(x_ref[:, :3] - prob.x[:, :3])) < 1e-7
+    dots = np.abs(np.sum(x_ref[:, 3:] * prob.x[:, 3:], axis=1))
+    assert np.max(1.0 - dots) < 1e-12
+    # covariance of the kept variables, the removed pose eliminated (full-dimension columns)
+    jac = least_squares(fun, np.zeros(dims), args=(x_ref,), max_nfev=1).jac
+    cov_ref = np.linalg.pinv(jac.T @ jac, rcond=1e-10)
+    cols, ours, off, full = [], [], 0, 0
+    for v in free:
+        act = pose_act if kinds[v] == 0 else point_act
+        if h.vars["alive"][ids[v]]:
+            cols += list(range(off, off + len(act)))
+            ours += [full + a for a in act]
+            full += 6 if kinds[v] == 0 else 3
+        off += len(act)
+    cov_ref = cov_ref[np.ix_(cols, cols)]
+    r_act = r_ours[:, ours]
+    cov_ours = np.linalg.pinv(r_act.T @ r_act, rcond=1e-10)
+    scale = np.sqrt(np.outer(np.diag(cov_ref), np.diag(cov_ref))) + 1e-30
+    live = np.diag(cov_ref) > 1e-12
+    assert np.max(np.abs(cov_ours - cov_ref)[np.ix_(live, live)] / scale[np.ix_(live, live)]
+                  ) < 1e-5
+
+
+def test_the_generator_is_standard_normal() -> None:
+    z = relin.normals(12345, 0, 200_000)
+    assert abs(z.mean()) < 4 / np.sqrt(len(z))
+    assert abs(z.var() - 1.0) < 4 * np.sqrt(2 / len(z))
+    assert abs(np.mean(z**4) - 3.0) < 0.1
+    assert np.array_equal(relin.normals(12345, 100, 10), z[100:110])  # counter-based
+
+
+def test_a_planar_component_stays_exactly_planar() -> None:
+    rng = np.random.default_rng(20261203)
+    n = 300
+    m = StochasticMap(n, gate=None, relinearize=None)
+    for k in range(8):
+        m.update(f"p{k}", f"p{k + 1}", step_at(rng, n, True))
+        m.update(f"p{k + 1}", f"l{k}", np.array([2.0, 1.0, 0.0]) + np.array(
+            [0.1, 0.1, 0.0]) * rng.standard_normal((n, 3)))
+    m.update("p0", "p8", m.query("p0", "p8")[rng.permutation(n)])
+    m.remove("p3")
+    rep = m.relinearize()
+    assert rep.components[0].iterations >= 1
+    e = m.edges("p0")
+    assert np.all(e[..., 2] == 0.0) and np.all(e[..., 4] == 0.0) and np.all(e[..., 5] == 0.0)
+
+
+def test_the_bounded_history_marginalises_exactly_in_the_linear_case() -> None:
+    """A long translation-only chain with old poses removed: a history bound forces old
+    removed frames into dense priors; in the linear case that loses nothing, so the
+    relinearised map's means equal those of an unbounded history's within 1e-9."""
+    rng = np.random.default_rng(20261204)
+    n = 64
+    maps = [StochasticMap(n, gate=None, relinearize=None, history=2**16),
+            StochasticMap(n, gate=None, relinearize=None)]
+    for k in range(420):
+        x = translation_samples(rng, n, [1.0, 0.1 * np.sin(k / 9), 0.0], 0.02)
+        p = np.array([3.0, 2.0, 0.5]) - np.array([k + 1.0, 0, 0]) + 0.05 * rng.standard_normal(
+            (n, 3))
+        for mm in maps:
+            mm.update(f"x{k}", f"x{k + 1}", x)
+            mm.update(f"x{k + 1}", "l", p)
+            if k >= 1:
+                mm.remove(f"x{k}")
+    bounded, full = maps
+    hb, hf = bounded.factor_history, full.factor_history
+    assert hb is not None and hf is not None
+    assert hb.n_marginalised > 0 and hb.priors and hb.nbytes() <= 2**16
+    assert hf.n_marginalised == 0
+    for mm in maps:
+        mm.relinearize()
+    for f in ("x420", "l"):
+        assert np.max(np.abs(bounded.query("x0", f).mean(axis=0)
+                             - full.query("x0", f).mean(axis=0))) < 1e-9
+    snap = bounded.snapshot()
+    assert StochasticMap.from_snapshot(snap).state_digest() == bounded.state_digest()
+
+
+def test_history_options_snapshot_and_digest() -> None:
+    rng = np.random.default_rng(20261205)
+    n = 40
+    m = StochasticMap(n, relinearize={"nis": 0.9, "gap": 5, "regate": 2})
+    assert m.options()["relinearize"]["regate"] == 2 and "history" in m.options()
+    assert StochasticMap(n).options()["relinearize"]["regate"] == 6  # the default: a repair
+    for k in range(6):
+        m.update(f"p{k}", f"p{k + 1}", random_at(rng, n, kind="cloud", t_sigma=0.2))
+    before = m.state_digest()
+    snap = m.snapshot()
+    again = StochasticMap.from_snapshot(snap)
+    assert again.state_digest() == before
+    m.relinearize("p3")
+    assert m.state_digest() != before
+    again.relinearize("p3")
+    assert again.state_digest() == m.state_digest()  # the redraw is a function of the state
+    # an old recording's options (no history, no policy, no gate scale) rebuild such a map
+    old = {k: v for k, v in m.options().items()
+           if k not in ("history", "relinearize", "gate_scale")}
+    legacy = StochasticMap.from_options(old)
+    assert legacy.factor_history is None and legacy.policy is None
+    assert legacy.relinearize().components == ()
+    with pytest.raises(InvalidOperation):
+        StochasticMap(n, history=None, relinearize={"nis": 0.9, "gap": 5})
+
+
+def test_an_imported_component_is_not_relinearised_and_says_why() -> None:
+    rng = np.random.default_rng(20261206)
+    n = 40
+    side = StochasticMap(n)
+    for k in range(3):
+        side.update(f"q{k}", f"q{k + 1}", random_at(rng, n, kind="cloud", t_sigma=0.2))
+    m = StochasticMap(n)
+    m.update("p0", "p1", random_at(rng, n, kind="cloud", t_sigma=0.2))
+    m.import_component(side.export_component("q0"))
+    before = m.edges("q0")
+    rep = m.relinearize()
+    skipped = {c.root: c.skipped for c in rep.components}
+    assert "imported submap" in skipped["q0"] and skipped["p0"] == ""
+    assert np.array_equal(m.edges("q0"), before)
+    m.update("p1", "q2", random_at(rng, n, kind="cloud", t_sigma=0.2))  # a join taints
+    assert "imported submap" in m.relinearize().components[0].skipped

@@ -1,0 +1,131 @@
+"""``mcsm ros2`` with real rclpy processes over Fast DDS on this host: a peer publishes the
+§6 simulation as ROS messages; the node's map ends bit-identical to the reference (the same
+constraints through MapClient); the peer receives TF, the path and the markers, retracts and
+reinstates a constraint through the node's parameters and calls its services. Also: importing
+the server, or ``mcsm --help``, loads no ROS library."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from mcsm.viz.ros import tangent_cov_to_ros
+from mcsm_client.client import MapClient
+from mcsm_client.process import McsmProcess, ServerProcess
+
+from tests.ros2.conftest import Reference
+
+PEER = Path(__file__).with_name("ros_peer.py")
+
+
+def test_the_server_and_mcsm_help_import_no_ros() -> None:
+    code = ("import sys, mcsm.server, mcsm.cli, mcsm.viz.rosbag\n"
+            "mcsm.cli.build_parser()\n"
+            "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('rclpy', 'rosbags',"
+            " 'nav_msgs', 'geometry_msgs', 'tf2_msgs', 'mcsm_client'))\n"
+            "print(bad)\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    # mcsm --help finds `ros2` and `view` through their entry points: the plugins' modules,
+    # nothing of ROS
+    assert r.stdout.strip() == ("['mcsm_client', 'mcsm_client.ros2', 'mcsm_client.ros2.cli', "
+                                "'mcsm_client.ros2.params', 'mcsm_client.view_command']")
+    r = subprocess.run([sys.executable, "-m", "mcsm.cli", "--help"], capture_output=True,
+                       text=True, timeout=60)
+    assert "ros2" in r.stdout and "export-rosbag" in r.stdout
+
+
+def test_node_streams_the_simulation(tmp_path: Path, ros_server: ServerProcess,
+                                     reference: Reference, ros_env: dict[str, str]) -> None:
+    msgs = reference.messages
+    frames = sorted({m.child_frame_id for m in msgs} | {"x0"})
+    target = reference.ids[-1]  # the last sighting: retracted, then reinstated
+    spec = {"messages": [{"topic": m.topic, "stamp_ns": m.stamp_ns, "frame_id": m.frame_id,
+                          "child": m.child_frame_id, "mean": m.mean.tolist(),
+                          "cov": m.cov.tolist()} for m in msgs],
+            "frames": frames, "poses": sum(f.startswith("x") for f in frames),
+            "retract": target, "n_constraints": len(reference.ids)}
+    # hostile inputs: a NaN pose, an 'unknown' (negative) variance, equal frames: counted as
+    # invalid, never sent, the node goes on
+    last = spec["messages"][-1]
+    bad_cov = np.diag([-1.0, 1, 1, 1, 1, 1]).tolist()
+    spec["messages"] += [dict(last, mean=[float("nan")] + last["mean"][1:]),
+                         dict(last, cov=bad_cov), dict(last, child=last["frame_id"])]
+    (tmp_path / "in.json").write_text(json.dumps(spec))
+    snapshots = tmp_path / "snapshots"
+    snapshots.mkdir()
+    node = McsmProcess(["ros2", "--connect", ros_server.endpoint, "--map", "live",
+                        "--ros-args", "-p", "publish_period_s:=0.3", "-p",
+                        "reorder_window_s:=0.3", "-p", f"snapshot_dir:={snapshots}", "-p",
+                        "pose_pairs:=['x0:x5']"],
+                       ready="mcsm ros2: ready", env=ros_env, log_path=tmp_path / "node.log",
+                       ready_timeout_s=60.0)
+    with node:
+        peer = subprocess.run([sys.executable, str(PEER), str(tmp_path / "in.json"),
+                               str(tmp_path / "out.json")], capture_output=True, text=True,
+                              timeout=120, env=node.env)
+        assert peer.returncode == 0, peer.stderr[-3000:] + node.log_tail(40)
+        out = json.loads((tmp_path / "out.json").read_text())
+        with MapClient(map="live", connect=ros_server.endpoint) as c:
+            deadline = time.monotonic() + 10.0
+            has_relin = hasattr(MapClient, "relinearize")
+            want_seq = reference.seq + 2 + has_relin
+            while c.info().seq < want_seq and time.monotonic() < deadline:
+                time.sleep(0.1)
+            info = c.info()
+            # every message applied once, in order; retract + reinstate + relinearize: three
+            # more seqs (the map's digest after the reinstate is checked in the diagnostics)
+            assert info.seq == want_seq, node.log_tail(40)
+            assert info.digest != reference.digest or not has_relin
+            assert c.verdict(target).status == "reinstated"  # type: ignore[union-attr]
+            last = f"x{spec['poses'] - 1}"
+            mean, _ = c.marginal("x0", last)
+            mean5, cov5 = c.marginal("x0", "x5")
+        code = node.stop()
+    assert code == 0, node.log_tail(20)
+    assert out["matched"] and out["complete"], out
+    # TF: the map frame at x0 (the origin), every frame under it at its marginal mean
+    assert out["tf"]["x0"][0] == "map" and out["tf"]["x0"][1:] == [0.0, 0.0]
+    assert set(out["tf"]) == set(frames)
+    assert out["tf"][last][0] == "map"
+    np.testing.assert_allclose(out["tf"][last][1:], mean[:2], atol=1e-9)
+    assert out["path"] == spec["poses"] and out["path_frame"] == "map"
+    # pose_pairs x0:x5: x5 in x0 with ROS's covariance
+    assert out["pose"][0] == "x0"
+    np.testing.assert_allclose(out["pose"][1:3], mean5[:2], atol=1e-12)
+    np.testing.assert_allclose(np.reshape(out["pose"][3], (6, 6)),
+                               tangent_cov_to_ros(mean5, cov5), atol=1e-15)
+    assert out["markers"] == 1 + 2 * len(frames)
+    assert out["marker_ns"] == ["mcsm", "mcsm/labels", "mcsm/landmarks", "mcsm/poses"]
+    assert out["labels"] == frames
+    # parameters retract / reinstate: done (the verdict above); an unknown id is refused
+    assert out["retract"][0] and out["reinstate"][0], out
+    assert out["retract_unknown"][0] is False and "ros-constraint-unknown" in \
+        out["retract_unknown"][1], out
+    assert out["snapshot"][0], out
+    assert (Path(out["snapshot"][1]) / "metadata.yaml").is_file()
+    assert out["relinearize"][0] is has_relin, out  # no relinearize operation before it lands
+    # the diagnostics after the reinstate: the map again bit-identical to the reference
+    d = out["diagnostics_reinstated"]
+    assert d["received"] == str(len(msgs) + 3) and d["applied"] == str(len(reference.ids))
+    assert d["refused"] == "0" and d["invalid_messages"] == "3" and d["queue_length"] == "0"
+    assert d["last_action"].startswith(f"reinstate {target}: seq {reference.seq + 2}, "
+                                       "reinstated"), d
+    assert d["digest"] == reference.digest and d["seq"] == str(reference.seq + 2)
+    assert out["diagnostics_level"] == 1  # WARN: invalid messages were seen
+    log = node.log_text()
+    assert "stopped:" in log or "stopped:" in "".join(iter_lines(node))
+
+
+def iter_lines(proc: McsmProcess) -> list[str]:
+    lines = []
+    while not proc.lines.empty():
+        line = proc.lines.get_nowait()
+        if line is None:
+            break
+        lines.append(line)
+    return lines

@@ -1,0 +1,152 @@
+"""ROS 2 bags: ``mcsm-client play-rosbag`` of bags written with rosbags (MCAP and sqlite3) gives
+the reference map's digest, a second play applies nothing; ``mcsm export-rosbag`` writes a bag
+rosbags reads back, whose poses are the map's marginals and which plays back into a map."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcsm import cli as mcsm_cli
+from mcsm.viz.ros import tangent_cov_to_ros
+from mcsm_client import cli as client_cli
+from mcsm_client.client import MapClient
+from mcsm_client.process import ServerProcess
+from rosbags.highlevel import AnyReader
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
+
+from tests.ros2.conftest import Reference
+
+STORE = get_typestore(Stores.ROS2_KILTED)
+
+
+def write_bag(path: Path, ref: Reference, storage: StoragePlugin) -> None:
+    """The simulation's messages as a ROS 2 bag, log time = stamp, plus an unrelated topic."""
+    with Writer(path, version=9, storage_plugin=storage) as w:
+        conns = {}
+        for m, msg in zip(ref.messages, ref.decoded, strict=True):
+            if m.topic not in conns:
+                conns[m.topic] = w.add_connection(m.topic, "nav_msgs/msg/Odometry",
+                                                  typestore=STORE)
+            w.write(conns[m.topic], m.stamp_ns,
+                    STORE.serialize_cdr(msg, "nav_msgs/msg/Odometry"))
+        other = w.add_connection("/chatter", "std_msgs/msg/String", typestore=STORE)
+        w.write(other, 1, STORE.serialize_cdr(STORE.types["std_msgs/msg/String"](data="hi"),
+                                              "std_msgs/msg/String"))
+
+
+def play(server: ServerProcess, bag: Path, map_name: str, capsys: pytest.CaptureFixture[str],
+         *extra: str) -> tuple[int, dict[str, object]]:
+    code = client_cli.main(["play-rosbag", str(bag), "--connect", server.endpoint, "--map",
+                            map_name, "--json", "--no-progress", *extra])
+    out = capsys.readouterr().out.strip().splitlines()[-1]
+    return code, json.loads(out)
+
+
+@pytest.mark.parametrize("storage,map_name", [(StoragePlugin.MCAP, "mcap"),
+                                              (StoragePlugin.SQLITE3, "sqlite")])
+def test_play_rosbag_gives_the_reference_map(tmp_path: Path, ros_server: ServerProcess,
+                                             reference: Reference, storage: StoragePlugin,
+                                             map_name: str,
+                                             capsys: pytest.CaptureFixture[str]) -> None:
+    bag = tmp_path / f"sim-{map_name}"
+    write_bag(bag, reference, storage)
+    code, out = play(ros_server, bag, map_name, capsys)
+    assert code == 0, out
+    assert out["received"] == len(reference.messages)
+    assert out["applied"] == {"constraint": reference.stats.applied["constraint"],
+                              "landmark": reference.stats.applied["landmark"]}
+    with MapClient(map=map_name, connect=ros_server.endpoint) as c:
+        info = c.info()
+        assert (info.seq, info.digest) == (reference.seq, reference.digest)
+        # played again: every request id is known, nothing changes
+        code, again = play(ros_server, bag, map_name, capsys)
+        assert code == 0 and again["duplicates"] == len(reference.ids)
+        assert again["applied"] == {}
+        assert c.info().digest == reference.digest
+
+
+def test_play_rosbag_refuses_what_it_cannot_read(tmp_path: Path, ros_server: ServerProcess,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    code = client_cli.main(["play-rosbag", str(tmp_path / "none"), "--connect",
+                            ros_server.endpoint, "--map", "round"])
+    assert code == 2 and "no such bag" in capsys.readouterr().err
+    bad = tmp_path / "typed"
+    with Writer(bad, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        c = w.add_connection("/mcsm/landmarks", "std_msgs/msg/String", typestore=STORE)
+        w.write(c, 1, STORE.serialize_cdr(STORE.types["std_msgs/msg/String"](data="x"),
+                                          "std_msgs/msg/String"))
+    code = client_cli.main(["play-rosbag", str(bad), "--connect", ros_server.endpoint,
+                            "--map", "round"])
+    assert code == 2 and "not nav_msgs/msg/Odometry" in capsys.readouterr().err
+
+
+def test_export_rosbag_round_trip(tmp_path: Path, ros_server: ServerProcess,
+                                  reference: Reference,
+                                  capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "map-bag"
+    code = mcsm_cli.main(["export-rosbag", str(ros_server.record), "-o", str(out), "--map",
+                          "ref"])
+    assert code == 0, capsys.readouterr().err
+    assert mcsm_cli.main(["export-rosbag", str(ros_server.record), "-o", str(out), "--map",
+                          "ref"]) == 2  # exists
+    assert "exists" in capsys.readouterr().err
+    with MapClient(map="ref", connect=ros_server.endpoint) as c:
+        info = c.info()
+        frames = [f for comp in info.components.values() for f in comp]
+        got: dict[str, list[object]] = {}
+        assert len(list(out.glob("*.mcap"))) == 1 and (out / "metadata.yaml").is_file()
+        with AnyReader([out], default_typestore=STORE) as r:
+            for conn, _t, raw in r.messages():
+                got.setdefault(conn.topic, []).append(r.deserialize(raw, conn.msgtype))
+        assert sorted(got) == ["/mcsm/frames", "/mcsm/markers", "/mcsm/path", "/tf"]
+        odo = {m.child_frame_id: m for m in got["/mcsm/frames"]}  # type: ignore[attr-defined]
+        assert sorted(odo) == sorted(set(frames) - {"x0"})
+        for name in ("x7", f"x{len([f for f in frames if f.startswith('x')]) - 1}", "l3"):
+            if name not in odo:
+                continue
+            mean, cov = c.marginal("x0", name)
+            m = odo[name]
+            assert m.header.frame_id == "map"
+            p = m.pose.pose.position
+            np.testing.assert_allclose([p.x, p.y, p.z], mean[:3], atol=1e-12)
+            np.testing.assert_allclose(m.pose.covariance.reshape(6, 6),
+                                       tangent_cov_to_ros(mean, cov), atol=1e-12)
+        (tf,) = got["/tf"]
+        assert {t.child_frame_id for t in tf.transforms} == set(frames)  # type: ignore
+        (path,) = got["/mcsm/path"]
+        assert [p.pose.position.x for p in path.poses][:2] == \
+            pytest.approx([0.0, c.marginal("x0", "x1")[0][0]])  # type: ignore[attr-defined]
+        (markers,) = got["/mcsm/markers"]
+        assert len(markers.markers) == 1 + 2 * len(frames)  # type: ignore[attr-defined]
+    # the exported frames play back into a map: same frames, the same means to sampling error
+    code = client_cli.main(["play-rosbag", str(out), "--connect", ros_server.endpoint,
+                            "--map", "round", "--constraint-topic", "/mcsm/frames",
+                            "--no-progress"])
+    assert code == 0, capsys.readouterr().err
+    with MapClient(map="round", connect=ros_server.endpoint) as c:
+        assert set(c.info().frames) == set(frames) - {"x0"} | {"map"}
+        mean, cov = c.marginal("map", "l3") if "l3" in frames else c.marginal("map", "x1")
+        want = odo["l3" if "l3" in frames else "x1"].pose.pose.position
+        sd = np.sqrt(np.diag(cov)[:2])
+        assert np.all(np.abs(mean[:2] - [want.x, want.y]) < 5 * sd / np.sqrt(8) + 1e-9)
+
+
+def test_play_rosbag_counts_invalid_messages(tmp_path: Path, ros_server: ServerProcess,
+                                             reference: Reference,
+                                             capsys: pytest.CaptureFixture[str]) -> None:
+    """A message the mapping refuses (equal frame ids) is counted, not sent: exit 1."""
+    from mcsm.viz.rosmsg import odometry, rosbags_maker
+
+    bad = odometry(rosbags_maker(STORE), 1, "x0", "x0", reference.messages[0].mean,
+                   reference.messages[0].cov)
+    bag = tmp_path / "bad"
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.SQLITE3) as w:
+        c = w.add_connection("/mcsm/constraints", "nav_msgs/msg/Odometry", typestore=STORE)
+        w.write(c, 1, STORE.serialize_cdr(bad, "nav_msgs/msg/Odometry"))
+    code, out = play(ros_server, bag, "round", capsys)
+    assert code == 1 and out["invalid"] == 1 and out["applied"] == {}
+    assert "both 'x0'" in str(out["first_error"])
