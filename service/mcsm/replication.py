@@ -118,6 +118,7 @@ class Replica:
         self._stop = threading.Event()
         self._task: Any = None
         self._listing: asyncio.Task[None] | None = None  # the primary's standby listing
+        self._keeper: asyncio.Task[None] | None = None  # the lease's renewals
         self._progress_at = time.monotonic()  # when the consumer last delivered (or was made)
         self._snap_busy = False
         self.promoted = threading.Event()
@@ -159,7 +160,10 @@ class Replica:
 
     async def _setup(self, deadline: float) -> None:
         """With ``claim``, the lease first: a standby sees a new map's config only once its
-        primary holds the lease, so it never takes over a map whose primary is starting."""
+        primary holds the lease, so it never takes over a map whose primary is starting. The
+        lease's renewals run from here on beside everything else (:meth:`_keep_lease`)."""
+        if self._keeper is None:
+            self._keeper = asyncio.create_task(self._keep_lease())
         if self.claim and not await retry("the map's lease", self.lease.acquire, deadline):
             holder = await self.lease.holder_now()
             raise McsmError(f"map {self.name!r} is served by server {holder} (it holds the "
@@ -190,12 +194,28 @@ class Replica:
             self.st = None  # a new empty map, but the log has the map: build it from there
 
     async def _step(self, what: str, make: Callable[[], Awaitable[T]], deadline: float) -> T:
-        """A step of starting (:func:`retry`), then the lease's renewal if it is due (the
-        replica's loop, which renews it later, is not running yet)."""
-        out = await retry(what, make, deadline)
-        if self.lease.holding and time.monotonic() >= self.lease.renew_at:
-            await self.lease.renew()
-        return out
+        """A step of starting (:func:`retry`; the lease is renewed beside it)."""
+        return await retry(what, make, deadline)
+
+    async def _keep_lease(self) -> None:
+        """The lease's only renewer, from the start to :meth:`stop_loop`, beside everything
+        else the replica does on the NATS loop: a step of starting, a consumer's creation or
+        a fetch can each take longer than the lease's TTL when the cluster is slow or
+        electing (a ``--map`` server lost its lease during a 5 s config read that way)."""
+        poll = min(0.1, self.link.lease_ttl_s / 10)
+        for _ in iter(int, 1):  # until cancelled (stop_loop)
+            lease = self.lease
+            try:
+                if lease.holding and time.monotonic() >= lease.renew_at:
+                    await lease.renew()  # False: lost (holding cleared); None: try again soon
+            except asyncio.CancelledError:
+                if self._stop.is_set():
+                    raise
+            except Exception as exc:  # renew() answers its own errors; anything else: go on
+                log.warning("map %r: lease renewal: %s: %s", self.name, type(exc).__name__,
+                            exc)
+            wait = lease.renew_at - time.monotonic() if lease.holding else poll
+            await asyncio.sleep(max(0.01, min(poll, wait)))
 
     def _config_of(self, st: MapState) -> dict[str, Any]:
         return {"options": st.map.options(), "n_samples": st.n_samples,
@@ -227,9 +247,7 @@ class Replica:
                         await self.lease.release()
                     await asyncio.sleep(0.5)
                 elif self.role == "primary":
-                    lease = self.lease
-                    got = await lease.renew() if time.monotonic() >= lease.renew_at else True
-                    if got is False:
+                    if not self.lease.holding:  # the keeper's renewal found it lost
                         await self._demote("lost the lease (it expired or another server "
                                            "holds it)")
                         continue
@@ -238,12 +256,10 @@ class Replica:
                         # its own task: a slow listing must never hold back a renewal
                         self._listing = asyncio.create_task(self._refresh_standbys())
                         next_standbys = time.monotonic() + 1.0
-                    await asyncio.sleep(max(0.0, min(poll, lease.renew_at - time.monotonic())))
+                    await asyncio.sleep(poll)
                 else:
                     if self.dirty and self.lease.holding:
                         await self.lease.release()
-                    elif self.lease.holding and time.monotonic() >= self.lease.renew_at:
-                        await self.lease.renew()
                     await self._standby_round()
                     if self.role == "standby" and self.st_ready() and (
                             self.lease.holding or time.monotonic() > next_try):
@@ -273,9 +289,8 @@ class Replica:
         for _ in range(1_000_000):
             if self.seq >= head or self.stopped is not None or self.dirty:
                 break
-            if time.monotonic() >= self.lease.renew_at:
-                if await self.lease.renew() is False:
-                    return
+            if not self.lease.holding:  # lost while catching up (the keeper renews it)
+                return
             await self._standby_round()
         if self.seq != head or self.stopped is not None or self.dirty:
             await self.lease.release()
@@ -534,6 +549,9 @@ class Replica:
         self._stop.set()
         if self._task is not None:
             self._task.cancel()
+        keeper = self._keeper
+        if keeper is not None and self.link.loop.is_running():
+            self.link.loop.call_soon_threadsafe(keeper.cancel)
 
     def close(self, release: bool) -> None:
         self.stop_loop()
