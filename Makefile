@@ -4,11 +4,12 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: run test lint bench experiments clean help wheel-check
+.PHONY: run test test-fleet lint bench experiments clean help wheel-check
 
 help:
 	@echo "make run    start a server, run the paper simulation and the multi-robot demo against it"
-	@echo "make test   lint, type-check and run the whole test suite"
+	@echo "make test   lint, type-check and run the test suite (all but the fleet matrix)"
+	@echo "make test-fleet  the replicated fleet's whole partition and endpoint matrix (~8 min)"
 	@echo "make bench  benchmarks and experiments (figures into experiments/results/)"
 	@echo "make wheel-check  build the wheel, install it in a fresh venv, run it (CI runs it)"
 
@@ -46,7 +47,10 @@ ROS_ENV = LD_LIBRARY_PATH="$$(_ROS_WHEELS_BOOTSTRAP_COMPLETE=1 $(PY) -c 'import 
 # shared cores. PYTEST_WORKERS=0 runs it in one process.
 PYTEST_WORKERS ?= 2
 test: lint
-	$(ROS_ENV) $(PY) -m pytest -q -n $(PYTEST_WORKERS) --dist loadfile
+	$(ROS_ENV) $(PY) -m pytest -q -n $(PYTEST_WORKERS) --dist loadfile -m "not fleet"
+
+test-fleet: $(STAMP)
+	$(ROS_ENV) $(PY) -m pytest -q --durations=5 tests/service/test_partitions.py tests/service/test_fleet_endpoints.py
 
 wheel-check: $(STAMP)
 	$(PY) tests/install/check_wheel.py

@@ -13,6 +13,10 @@ For each variant it copies ``deploy/<variant>/*.json5`` into ``OUT/<variant>/`` 
   ``localhost``, ``127.0.0.1`` and every ``--server-host``) and one client certificate per
   identity (CN = the identity: ``robot1``, ``viewer``, ...) in ``certs/`` (keys mode 0600).
 
+Both variants also write the NATS users of the fleet's map servers (the maps' replicated
+logs, ``docs/fleet.md``): ``nats-auth.conf`` for ``mcsm nats-cluster --auth`` and
+``serverK.nats.json`` for ``mcsm serve --nats-auth``.
+
 The identities are the connecting configs' file names (every ``*.json5`` but ``server.json5``
 and ``router.json5``): the clients and a fleet's map servers (``server1``, ``server2``). One
 ``users.txt`` (one CA) serves both shapes of deployment: copy ``OUT/<variant>/server.json5``
@@ -58,8 +62,29 @@ def _copy(variant: str, out: Path) -> Path:
     return dst
 
 
+def make_nats_auth(dst: Path) -> None:
+    """The NATS users of a fleet's map servers (``server1``, ``server2``, ...): the cluster's
+    ``nats-auth.conf`` (``mcsm nats-cluster --auth``) and each server's ``serverK.nats.json``
+    (``mcsm serve --nats-auth``), random passwords, mode 0600. Clients (robots, viewers,
+    admins) get no NATS user: only servers reach the maps' logs."""
+    users = []
+    for ident in identities(dst):
+        if not ident.startswith("server"):
+            continue
+        password = secrets.token_urlsafe(24)
+        users.append(f'    {{user: "{ident}", password: "{password}"}}')
+        cred = dst / f"{ident}.nats.json"
+        cred.write_text(f'{{"user": "{ident}", "password": "{password}"}}\n')
+        cred.chmod(0o600)
+    conf = dst / "nats-auth.conf"
+    conf.write_text("# NATS users of the fleet's map servers (made by make_secrets.py)\n"
+                    "authorization {\n  users = [\n" + ",\n".join(users) + "\n  ]\n}\n")
+    conf.chmod(0o600)
+
+
 def make_usrpwd(out: Path) -> Path:
     dst = _copy("usrpwd", out)
+    make_nats_auth(dst)
     lines = []
     for ident in identities(dst):
         password = secrets.token_urlsafe(24)
@@ -95,6 +120,7 @@ def make_mtls(out: Path, server_hosts: list[str]) -> Path:
     if shutil.which("openssl") is None:
         raise FileNotFoundError("openssl is not installed (apt-get install openssl)")
     dst = _copy("mtls", out)
+    make_nats_auth(dst)
     certs = dst / "certs"
     certs.mkdir()
     _openssl("req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1",

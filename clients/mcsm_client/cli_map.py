@@ -36,7 +36,7 @@ def cmd_info(args: argparse.Namespace) -> int:
            "rejected": info.rejected, "requests_with_error": info.rejected,
            "errors": dict(info.rejected_by_error), "server_id": info.server_id,
            "recording": info.recording, "verdicts": dict(info.verdicts), "role": info.role,
-           "standbys": dict(info.standbys), "sync_standbys": info.sync_standbys}
+           "standbys": dict(info.standbys), "replicas": info.replicas, "epoch": info.epoch}
     comps = ", ".join(f"{root} ({_count(len(frames), 'frame')})" for root, frames in
                       list(info.components.items())[:10])
     more = f" ... ({len(info.components) - 10} more)" if len(info.components) > 10 else ""
@@ -53,10 +53,10 @@ def cmd_info(args: argparse.Namespace) -> int:
             " (rejected: refused by the gate, recorded, map unchanged)"
             if info.verdicts.get("rejected") else "")
     text += f"\nserver {info.server_id} ({info.role})"
-    if info.standbys or info.sync_standbys:
+    if info.replicas:
         lag = ", ".join(f"{z} lag {info.seq - s}" for z, s in sorted(info.standbys.items()))
-        text += (f"; standbys: {lag or 'none'} ({info.sync_standbys} synchronous "
-                 "required)")
+        text += (f"; log with {info.replicas} replicas, lease revision {info.epoch}; "
+                 f"standbys: {lag or 'none'}")
     _print(args, obj, text)
     return EXIT_OK
 
@@ -215,7 +215,8 @@ def cmd_audit(args: argparse.Namespace) -> int:
 
 
 def cmd_servers(args: argparse.Namespace) -> int:
-    """``servers``: the maps that live servers serve (liveliness tokens), with server ids."""
+    """``servers``: the maps that live servers serve (liveliness tokens), with server ids,
+    and each replicated map's standbys (from its primary's ``info``)."""
     rows: list[dict[str, str]] = []
     with _client(args) as c:
         for reply in c.session.liveliness().get(f"{args.prefix}/*/alive/*", timeout=2.0):
@@ -223,13 +224,13 @@ def cmd_servers(args: argparse.Namespace) -> int:
                 continue
             parts = str(reply.ok.key_expr).split("/")
             rows.append({"map": parts[-3], "server": parts[-1], "role": "primary"})
-        # hot standbys: the verbatim @standby chunk is matched only literally, map by map
-        for m in sorted({r["map"] for r in rows}):
-            for reply in c.session.liveliness().get(f"{args.prefix}/{m}/@standby/*",
-                                                    timeout=2.0):
-                if reply.ok is not None:
-                    zid = str(reply.ok.key_expr).rsplit("/", 1)[-1]
-                    rows.append({"map": m, "server": zid, "role": "standby"})
+    for m in sorted({r["map"] for r in rows}):  # standbys: the log's consumers
+        try:
+            with _client(args, map=m) as mc:
+                info = mc.info(timeout_s=2.0)
+        except McsmError:
+            continue
+        rows += [{"map": m, "server": z, "role": "standby"} for z in info.standbys]
     rows.sort(key=lambda r: (r["map"], r["server"]))
     text = "\n".join(f"{r['map']:24s} {r['server']:34s} {r['role']}" for r in rows) \
         or "no live server"

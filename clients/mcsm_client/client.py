@@ -136,6 +136,7 @@ class MapClient:
         self.namespace = wire.check_namespace(namespace) if namespace is not None else None
         self._pinned = server_id
         self._server: str | None = server_id
+        self._answered = threading.local()  # per calling thread: the server that answered
         self.foreign_replies = 0
         """Replies from anyone but the map's server (ignored and logged)."""
         conf = client_config(connect, zenoh_config)
@@ -247,6 +248,7 @@ class MapClient:
                 if isinstance(got, tuple):
                     ok, data = got
                     if ok:
+                        self._answered.server = server  # what _decode_ack checks against
                         return decode(data)
                     err = wire.decode_error(data)
                     if not err.retryable or deadline - time.monotonic() < MIN_ATTEMPT_S:
@@ -350,8 +352,11 @@ class MapClient:
 
     def _decode_ack(self, data: bytes) -> wire.Ack:
         ack = wire.decode_ack(data)
-        if ack.server and ack.server != self._server:
-            raise BadMessage("ack.server", f"the map's server {self._server}", ack.server)
+        # the server that answered (self._server may have been reset meanwhile by the
+        # liveliness callback: the old primary's token went away during a takeover)
+        server = getattr(self._answered, "server", None)
+        if ack.server and ack.server != server:
+            raise BadMessage("ack.server", f"the map's server {server}", ack.server)
         return ack
 
     def _request(self, name: str, what: str, timeout_s: float | None, request_id: str | None,

@@ -244,10 +244,11 @@ class ServerProcess(McsmProcess):
         """
         self.record.parent.mkdir(parents=True, exist_ok=True)
         super().start()
-        if self.endpoint != "-" and self.ready_line.split()[-1] != self.endpoint:
+        # "listening on ENDPOINT" or "listening on ENDPOINT (joined ROUTER...)"
+        where = self.ready_line.split()[2] if len(self.ready_line.split()) > 2 else ""
+        if self.endpoint != "-" and where != self.endpoint:
             self.stop()
-            raise RuntimeError(f"mcsm serve listens on {self.ready_line.split()[-1]}, "
-                               f"not {self.endpoint}")
+            raise RuntimeError(f"mcsm serve listens on {where}, not {self.endpoint}")
         return self
 
     def __enter__(self) -> ServerProcess:

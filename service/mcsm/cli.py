@@ -7,8 +7,9 @@
                [--gate-scale W:T:S|none] [--history BYTES|none] [--relinearize-nis Q|none]
                [--relinearize-every K|none] [--relinearize-gap K] [--relinearize-regate K|none]
                [--record PATH.mcap] [--restore PATH.mcap] [--zenoh-config FILE]
-               [--connect ENDPOINT]... [--standby-of MAP]... [--sync-standbys K]
+               [--connect ENDPOINT]... [--nats URL]... [--standby-of MAP]...
     mcsm router --listen ENDPOINT
+    mcsm nats-cluster --dir DIR [--port 4222] [--nodes 3] [--auth FILE]
     mcsm replay FILE.mcap... [--json]
     mcsm inspect FILE.mcap... [--json]
     mcsm recover IN.mcap... -o OUT.mcap|OUT_DIR
@@ -28,7 +29,7 @@ the recording cleanly on SIGINT or SIGTERM. Exit codes: see :data:`EXIT_CODES_HE
 ``mcsm --help`` and docs/recordings.md).
 
 A split recording (``serve --split-size`` / ``--split-duration``) is read by naming its files:
-several paths, a directory or a glob pattern (:mod:`mcsm.recset`); a gap or a mixed set is a
+several paths, a directory or a glob pattern (:mod:`mcsm.log.recset`); a gap or a mixed set is a
 usage error (2).
 """
 
@@ -62,7 +63,6 @@ EXIT_RECORDING_FAILED = 3  # serve: the recording could not be written; serving 
 EXIT_CUT = 4  # the file ends before its clean close (SIGKILL, full disk): the prefix was used
 EXIT_DAMAGED = 5  # a CRC does not match or a record does not decode: read up to the damage
 EXIT_OTHER_ARITHMETIC = 6  # replay: recorded by another arithmetic version; not compared
-EXIT_DEPOSED = 7  # serve: another primary took every map of this server (it was cut off)
 
 EXIT_CODES_HELP = """exit codes:
   0  success (replay: every checkpoint matches and the file is complete)
@@ -73,8 +73,6 @@ EXIT_CODES_HELP = """exit codes:
   4  the recording is cut (no clean close): inspect/replay used every complete record
   5  the recording is damaged (CRC mismatch or undecodable record): read up to the damage
   6  replay: recorded by another arithmetic version of the core; digests not comparable
-  7  serve: another primary serves every map this server served (it was cut off from the
-     network while a standby took over); restart it with --standby-of MAP
 (replay reports the first that applies in the order 1, 5, 4, 6)"""
 
 
@@ -89,6 +87,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     # choices and defaults come from the code that applies them (core, server), never copies
     from mcsm.core.smap import GAINS, METHODS, RULES, SPACES, StochasticMap
+    from mcsm.replication_defaults import (
+        DEFAULT_LEASE_TTL_S,
+        DEFAULT_LOG_MAX_AGE_S,
+        DEFAULT_LOG_MAX_BYTES,
+        DEFAULT_REPLICAS,
+    )
     from mcsm.server import ServerOptions
 
     so = ServerOptions()
@@ -116,6 +120,11 @@ def build_parser() -> argparse.ArgumentParser:
     rt.add_argument("--zenoh-config", default=None, metavar="FILE",
                     help="Zenoh JSON5 config (TLS, access control); its mode becomes router")
     rt.add_argument("--log-level", default="INFO")
+    from mcsm.natsrun import add_arguments as add_nats_cluster_args
+
+    add_nats_cluster_args(sub.add_parser(
+        "nats-cluster", help="run a NATS JetStream cluster on this machine: the replicated "
+        "log of a fleet's maps (docs/fleet.md)"))
     s.add_argument("--samples", type=int, default=so.map_options["n_samples"], metavar="N",
                    help="samples per AT for new maps (default %(default)s)")
     s.add_argument("--method", choices=METHODS, default=mo["method"],
@@ -223,20 +232,30 @@ def build_parser() -> argparse.ArgumentParser:
                         "a --restore) is not applied twice (default %(default)g)")
     s.add_argument("--id-memory", type=int, default=so.lru_size, metavar="K",
                    help="remember at most this many request ids per map (default %(default)s)")
-    hs = s.add_argument_group("hot standby (docs/fleet.md)")
+    hs = s.add_argument_group("replication (docs/fleet.md; needs the fleet extra)")
+    hs.add_argument("--nats", action="append", default=None, metavar="URL",
+                    help="replicate every map through this NATS JetStream cluster (repeatable "
+                         "or comma-separated, e.g. nats://127.0.0.1:4222; mcsm nats-cluster): "
+                         "an update is acknowledged once the log stored it on a quorum")
+    hs.add_argument("--nats-auth", default=None, metavar="FILE",
+                    help="this server's NATS credentials: JSON {\"user\", \"password\"} "
+                         "(deploy/: serverK.nats.json)")
     hs.add_argument("--standby-of", action="append", default=None, metavar="MAP",
-                    help="follow MAP's primary as a hot standby (repeatable): apply and record "
-                         "its inputs, take over when its liveliness token goes away")
-    hs.add_argument("--sync-standbys", type=int, default=so.sync_standbys, metavar="K",
-                    help="acknowledge an update only once K standbys hold it, and refuse "
-                         "updates (retryable NotReplicated) while fewer are alive (default 0: "
-                         "an ack may be lost with the primary if no standby got it yet)")
-    hs.add_argument("--sync-timeout", type=float, default=so.sync_timeout_s, metavar="S",
-                    help="seconds to wait for the synchronous standbys' confirmation of one "
-                         "input (default %(default)s)")
-    hs.add_argument("--repl-log", type=int, default=so.repl_log, metavar="K",
-                    help="inputs per map kept in memory for standbys that catch up; one that "
-                         "is further behind gets a snapshot (default %(default)s)")
+                    help="follow MAP's log as a hot standby (repeatable): apply and record "
+                         "its inputs, take over when its lease is free")
+    hs.add_argument("--replicas", type=int, default=DEFAULT_REPLICAS, metavar="R",
+                    help="copies of each new map's log, lease and snapshots (default "
+                         "%(default)s; 1 for a one-node cluster)")
+    hs.add_argument("--lease-ttl", type=float, default=DEFAULT_LEASE_TTL_S, metavar="S",
+                    help="a map's lease lasts this long unless renewed: a SIGKILLed primary's "
+                         "standby takes over after it (set by the first server of a "
+                         "cluster; default %(default)g)")
+    hs.add_argument("--log-max-bytes", type=int, default=DEFAULT_LOG_MAX_BYTES, metavar="B",
+                    help="a new map's log keeps at most this many bytes, the oldest inputs "
+                         "dropped first (default %(default)s; 0: no limit)")
+    hs.add_argument("--log-max-age", type=float, default=DEFAULT_LOG_MAX_AGE_S, metavar="S",
+                    help="a new map's log drops inputs older than this (default 0: never; "
+                         "at least --id-ttl-s)")
     s.add_argument("--log-level", default="INFO")
 
     raw = argparse.RawDescriptionHelpFormatter
@@ -350,6 +369,10 @@ def main(argv: list[str] | None = None) -> int:
             return serve(args)
         if args.command == "router":
             return router_cmd(args)
+        if args.command == "nats-cluster":
+            from mcsm.natsrun import run as nats_cluster
+
+            return nats_cluster(args)
         if args.command == "replay":
             return replay_cmd(args)
         if args.command == "recover":
@@ -557,10 +580,10 @@ def serve(args: argparse.Namespace) -> int:
         id_ttl_s=max(0.0, args.id_ttl_s), snapshot_every=max(1, args.snapshot_every),
         snapshots_kept=max(1, args.snapshots_kept),
         disk_snapshot_every=max(0, args.disk_snapshot_every), standby_of=standby_of,
-        sync_standbys=max(0, args.sync_standbys), sync_timeout_s=max(0.01, args.sync_timeout),
-        repl_log=max(1, args.repl_log), device=args.device,
+        device=args.device,
         gate_defer=None if args.gate_defer is None else DeferOptions(expiry=args.gate_defer))
     try:
+        opts.nats = _nats_options(args)
         for name in [*opts.maps, *opts.standby_of]:
             wire.map_keys(name, opts.prefix)
         if opts.device != "cpu":  # one clear line now, not a traceback at the first map
@@ -604,10 +627,6 @@ def serve(args: argparse.Namespace) -> int:
                 log.critical("stopping after a recording failure")
                 code = EXIT_RECORDING_FAILED
                 break
-            if server.serving_nothing:
-                log.critical("stopping: another primary serves every map of this server")
-                code = EXIT_DEPOSED
-                break
     finally:
         server.close()
         session.close()
@@ -628,6 +647,35 @@ def _no_space(exc: BaseException) -> bool:
                                                       errno.EIO)
 
 
+def _nats_options(args: argparse.Namespace) -> Any:
+    """``--nats``, ``--nats-auth``, ... as :class:`mcsm.replication.NatsOptions` (None
+    without ``--nats``: then nothing of NATS is imported).
+
+    Raises
+    ------
+    McsmError
+        A replication flag without ``--nats``, or unreadable credentials.
+    """
+    urls = [u.strip() for a in (args.nats or []) for u in a.split(",") if u.strip()]
+    if not urls:
+        if args.nats_auth is not None:
+            raise McsmError("--nats-auth needs --nats URL")
+        return None
+    from mcsm.replication import NatsOptions
+
+    o = NatsOptions(urls=urls, replicas=max(1, args.replicas),
+                    lease_ttl_s=max(0.2, args.lease_ttl),
+                    max_bytes=max(0, args.log_max_bytes), max_age_s=max(0.0, args.log_max_age))
+    if args.nats_auth is not None:
+        a = NatsOptions.load_auth(args.nats_auth)
+        o.user, o.password = a.get("user"), a.get("password")
+        o.tls_ca, o.tls_cert, o.tls_key = a.get("tls_ca"), a.get("tls_cert"), a.get("tls_key")
+    if o.max_age_s and o.max_age_s < args.id_ttl_s:
+        raise McsmError(f"--log-max-age {o.max_age_s:g} is below --id-ttl-s {args.id_ttl_s:g}: "
+                        "the log's de-duplication window must fit in it")
+    return o
+
+
 # ------------------------------------------------------------------------------------ common
 def _version_text() -> str:
     from mcsm import __version__
@@ -639,7 +687,7 @@ def _version_text() -> str:
 
 def _input_files(cmd: str, args: list[Path]) -> tuple[list[Path], str | None]:
     """The files ``args`` name (one recording, or a split recording's files in set order,
-    :mod:`mcsm.recset`) and why they cannot be read (None if they can)."""
+    :mod:`mcsm.log.recset`) and why they cannot be read (None if they can)."""
     from mcsm.log.recset import expand, order
     from mcsm.log.topics import RecordingError
 

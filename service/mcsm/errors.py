@@ -160,18 +160,18 @@ class Forbidden(McsmError):
 
 
 class NotReplicated(McsmError):
-    """The map's server could not get the update to its synchronous standbys in time
-    (``mcsm serve --sync-standbys K``): it is not acknowledged. It may or may not have been
-    applied; retry with the same request id (``MapClient`` does, until its deadline): the
-    retry is applied once, or acknowledged once the standbys have it.
+    """The map's log did not take the update, or this server may not acknowledge it now
+    (``mcsm serve --nats``: it does not hold the map's lease, or the lease may have expired
+    while the log stored it). It may or may not be in the log; retry with the same request
+    id (``MapClient`` does, until its deadline, finding the lease's holder): the retry is
+    applied once, or acknowledged as a duplicate if the log holds it.
     """
 
     retryable = True
 
-    def __init__(self, map_name: str, have: int, need: int, reason: str) -> None:
-        super().__init__(f"map {map_name!r}: {reason} ({have} of {need} synchronous "
-                         "standbys); retry with the same request id", map=map_name, have=have,
-                         need=need, reason=reason)
+    def __init__(self, map_name: str, reason: str) -> None:
+        super().__init__(f"map {map_name!r}: {reason}; retry with the same request id",
+                         map=map_name, reason=reason)
 
 
 class InternalError(McsmError):

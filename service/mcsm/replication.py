@@ -1,581 +1,464 @@
-"""Hot standbys: a map's inputs, in sequence order, on other server processes.
+"""Replicated maps: each map's accepted inputs in a NATS JetStream stream, standbys that apply
+it, and a lease that says which server may acknowledge.
 
-Roles. For each map, one server is the *primary*: it declares the map's queryable and the
-liveliness token ``<prefix>/<map>/alive/<zid>`` that clients look for. Servers started with
-``mcsm serve --standby-of MAP`` are *standbys* of that map: each declares the queryable and
-liveliness token ``<prefix>/<map>/@standby/<zid>`` (a verbatim ``@`` chunk, so the map's
-``**`` queryable never sees replication traffic) and watches the primary's token.
+``mcsm serve --nats URL`` joins a JetStream cluster (``mcsm nats-cluster``, three nodes; every
+stream, bucket and object store has ``--replicas`` R = 3 copies, and JetStream answers a
+publish once a quorum of them stored it). For each replicated map:
 
-The stream (:class:`PrimaryLink`). After the primary has applied and recorded an input, and
-before it acknowledges it, it pushes the input's recording record (seq, operation, receive
-time, sender, request id, request bytes, and the digest at checkpoints) to every standby. A
-standby (:class:`Follower`) applies it through :meth:`MapState.apply` exactly as replay does,
-records it in its own MCAP, and compares digests at the primary's checkpoints (a mismatch stops
-that standby: it never takes over with a forked map). With ``--sync-standbys K`` the primary
-acknowledges an update only once K standbys confirmed they hold it, and refuses writes (with the
-retryable :class:`~mcsm.errors.NotReplicated`) while fewer than K standbys are alive; without
-it (K = 0) the push is fire-and-forget, and what the primary acknowledged in the last moments
-before it died (the pushes still in flight, typically the last few milliseconds) can be lost.
+* **The log.** One stream (``MCSM_<prefix>_<map>``) holds the map's inputs, one message per
+  applied input, in seq order: the map's seq is ``base`` + the stream seq (``base`` is the seq
+  the map had when its stream was made, 0 unless it came from ``--restore``). A message is the
+  input's recording record (operation, receive time, sender, request id, request bytes, and
+  the digest at checkpoints), so a standby rebuilds the map exactly as replay does, and it
+  carries any operation of the table (:data:`mcsm.log.topics.INPUT_TOPICS`) without knowing
+  which. Its ``Nats-Msg-Id`` is the request id (de-duplication window: ``--id-ttl-s``).
+* **Apply, append, then acknowledge.** The primary's worker applies an input (a refused
+  input changes nothing and is never logged), publishes it with
+  ``Nats-Expected-Last-Sequence`` = the stream seq it has applied, records it, and
+  acknowledges it only when JetStream stored it on a quorum *and* the lease is still valid.
+  Apply-then-publish keeps refused inputs out of the log (a replayer never meets one, and
+  seqs stay dense); the price is a rollback when the append is refused, which is rare (another
+  server appended: this one was deposed) and done by rebuilding the map from this server's
+  own recording (every logged input is in it, nothing else), then following the stream.
+* **An unknown outcome** (the publish timed out, the connection dropped) is resolved by
+  publishing the same message again (same id, same expected sequence): JetStream checks the
+  id before the expected sequence, so if the first attempt was stored the retry answers
+  ``duplicate`` with its seq, and if it was not, the retry is stored or refused
+  (``tests/service/test_nats_log.py`` checks this on a real cluster). A ``duplicate`` that
+  this server did not cause (the id is in the log from another primary) is a refusal. If
+  the log cannot be reached before the lease could have expired, the input is not
+  acknowledged (``NotReplicated``, retryable) and the map is rebuilt as above.
+* **The lease.** A key per map in the KV bucket ``MCSM_LEASE`` (a bucket TTL, ``--lease-ttl``,
+  2 s by default): taken with compare-and-set (``create``), renewed with compare-and-set
+  (``update`` on the revision this server wrote) every TTL/6. A server acknowledges only
+  while ``now < t_sent + 0.75 TTL``, ``t_sent`` being when it sent its last successful renewal:
+  JetStream stamps the entry after that, so no other server can hold the lease before then.
+  A primary stopped by SIGINT/SIGTERM deletes its lease (a standby takes over at once); a
+  SIGKILLed one's lease expires after the TTL.
+* **Standbys** consume the stream (an ephemeral pull consumer from their seq + 1, fetched in
+  bounded batches, applied through :meth:`MapState.apply` on the worker and recorded). A
+  standby takes the lease when it is free, applies the whole stream (the head read after the
+  lease was taken), and only then declares the map's Zenoh keys and acknowledges. The Zenoh
+  liveliness token ``<prefix>/<map>/alive/<zid>`` stays, for clients to find the primary; it
+  plays no part in the election.
+* **Late standbys** start from the empty map and the whole stream when the stream reaches
+  back to it; when retention (``--log-max-bytes``, ``--log-max-age``) dropped its beginning,
+  from the latest snapshot in the object store ``MCSM_SNAP`` (written by the primary every
+  ``--disk-snapshot-every`` inputs, with the remembered request ids) and the stream after it.
 
-Catch-up. A standby that starts late or sees a gap in the seqs asks the primary's
-``<prefix>/<map>/@log`` queryable for the inputs after its seq: the primary answers from its
-in-memory log of the last ``--repl-log`` inputs, or, if the standby is further behind, with a
-snapshot of the map (taken on the primary's worker, sent in parts below the message cap, with
-the remembered request ids) followed by the inputs after it. A standby that already holds a
-state and falls behind the log stops (its recording could not continue): restart it.
+The modules: :mod:`mcsm.replication_link` (the connection, the options, the buckets, NATS
+names), :mod:`mcsm.replication_log` (the entry codec; one map's stream, config, snapshot and
+consumer), :mod:`mcsm.replication_lease` (the lease); this module holds the replica: one map's
+roles (standby, primary), its loop on the NATS thread and its work on the server's worker.
 
-Takeover. When the primary's liveliness token disappears, every standby asks the others for
-their seq (through the worker, after the inputs already queued) and the one with the highest
-seq, ties broken by the smallest server id, becomes primary: it checks that no other server
-declared the map meanwhile, declares the map's keys, records a ``takeover`` checkpoint,
-announces a ``takeover`` event and continues the seq. The others follow the new primary's token.
-Every standby computes the same choice from the same answers, so there is one winner as long as
-the standbys see each other; across a network partition two could promote, and the later one
-then refuses if it sees the first one's token (Zenoh liveliness is not a consensus protocol).
-A returning old primary is started again with ``--standby-of`` and a new recording: it catches up
-from the new primary.
+Nothing of this is imported by a server without ``--nats``.
 """
 
 from __future__ import annotations
 
-import functools
+import asyncio
 import logging
 import threading
 import time
-from collections import deque
-from collections.abc import Callable
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
-
-import zenoh
+from collections.abc import Awaitable, Callable
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from mcsm import wire
 from mcsm.core.smap import StochasticMap
-from mcsm.errors import BadMessage, McsmError, NotReplicated
-from mcsm.log.topics import INPUT_TOPICS, decode_input
+from mcsm.errors import McsmError
+from mcsm.log.topics import decode_input
 from mcsm.map.carry import decode_snapshot, encode_snapshot
 from mcsm.map.deferral import DeferOptions, DeferState
 from mcsm.map.state import MapState
+from mcsm.replication_defaults import (
+    DEFAULT_LEASE_TTL_S,
+    DEFAULT_LOG_MAX_AGE_S,
+    DEFAULT_LOG_MAX_BYTES,
+    DEFAULT_REPLICAS,
+)
+from mcsm.replication_lease import Lease
+from mcsm.replication_link import NatsLink, NatsOptions, retry, stream_name
+from mcsm.replication_log import Entry, MapLog, Refused, pack_entry, pack_obj
 
 if TYPE_CHECKING:
     from mcsm.server import Server
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
-PART_BYTES = 4 * 1024 * 1024
-"""Bytes of a snapshot per catch-up reply (below the servers' 8 MiB message cap)."""
-BATCH_BYTES = 4 * 1024 * 1024
-"""Bytes of inputs per catch-up reply."""
-DEFAULT_LOG_ENTRIES = 2000
-"""Inputs the primary keeps in memory for standbys that catch up (``--repl-log``)."""
-DEFAULT_SYNC_TIMEOUT_S = 2.0
-"""How long the primary waits for its synchronous standbys' confirmation of one input."""
-_MAX_MSG = 64 * 1024 * 1024
-SETTLE_S = 0.0
-"""How long a standby waits, after its primary's token went away, before it checks that it
-still reaches a router or peer. Zero: a lost router's link is gone from the session before
-the tokens it carried are withdrawn (20 of 20 router restarts under load, two at a time:
-``test_a_router_restart_does_not_split_the_map``)."""
 TAKEOVER = "takeover"
 """The event (``op`` and ``kind``) a standby publishes when it becomes the map's primary."""
+STALL_S = 2.0
+"""A standby behind the log whose consumer delivered nothing for this long makes a new one
+(the old one may be gone: its node was cut off past its inactivity threshold, or restarted)."""
 
 
-# --------------------------------------------------------------------------------- messages
-@dataclass(frozen=True)
-class Entry:
-    """One applied input as the primary recorded it."""
+class Replica:
+    """One replicated map on this server: its state, its role (``standby``, ``primary``),
+    the lease and the stream consumer. The map's state changes on the server's worker only;
+    the NATS loop fetches, renews and hands work to the worker."""
 
-    seq: int
-    op: str
-    recv_ns: int
-    sender: str
-    request_id: str
-    payload: bytes
-    digest: str | None = None
-
-    def to_obj(self) -> dict[str, Any]:
-        return {"seq": self.seq, "op": self.op, "recv_ns": self.recv_ns, "sender": self.sender,
-                "id": self.request_id, "request": self.payload, "digest": self.digest}
-
-    @staticmethod
-    def from_obj(obj: Any) -> Entry:
-        """Checked inverse of :meth:`to_obj`.
-
-        Raises
-        ------
-        BadMessage
-            If a field is missing or of the wrong type.
-        """
-        if not isinstance(obj, dict):
-            raise BadMessage("entry", "a map", type(obj).__name__)
-        seq, op, recv = obj.get("seq"), obj.get("op"), obj.get("recv_ns")
-        sender, rid, req, dig = (obj.get("sender"), obj.get("id"), obj.get("request"),
-                                 obj.get("digest"))
-        if type(seq) is not int or seq < 1 or type(recv) is not int:
-            raise BadMessage("entry.seq/recv_ns", "integers", f"{seq!r}, {recv!r}")
-        if op not in INPUT_TOPICS:
-            raise BadMessage("entry.op", f"one of {sorted(INPUT_TOPICS)}", repr(op)[:40])
-        if not isinstance(sender, str) or not isinstance(rid, str) \
-                or not isinstance(req, bytes) or not (dig is None or isinstance(dig, str)):
-            raise BadMessage("entry", "sender, id: str; request: bytes; digest: str or nil",
-                             "other types")
-        return Entry(seq, str(op), recv, sender, rid, req, dig)
-
-
-def _pack(obj: dict[str, Any]) -> bytes:
-    return wire.pack({"v": wire.VERSION, **obj})
-
-
-def _unpack(payload: bytes) -> dict[str, Any]:
-    return wire.unpack(payload, max_bytes=_MAX_MSG, max_map_len=1 << 20)
-
-
-def undeclare_all(entities: list[Any]) -> None:
-    """Undeclare Zenoh entities (queryables, tokens, subscribers, publishers) and empty the
-    list; an entity the session already dropped is only logged."""
-    for ent in entities:
-        try:
-            ent.undeclare()
-        except zenoh.ZError as exc:
-            log.debug("undeclare: %s", exc)
-    entities.clear()
-
-
-def _zid_of(key: Any) -> str:
-    return str(key).rsplit("/", 1)[-1]
-
-
-# ------------------------------------------------------------------------------ the primary
-class ReplLog:
-    """The last inputs of one map, for standbys that catch up (thread-safe)."""
-
-    def __init__(self, head: int, max_entries: int) -> None:
-        self._lock = threading.Lock()
-        self._entries: deque[Entry] = deque()
-        self.head = int(head)
-        self.max_entries = max(1, int(max_entries))
-        self._snapshot: tuple[int, bytes] | None = None
-
-    def append(self, e: Entry) -> None:
-        with self._lock:
-            if self._entries and e.seq != self._entries[-1].seq + 1:
-                self._entries.clear()  # not contiguous (cannot happen in one worker): restart
-            self._entries.append(e)
-            while len(self._entries) > self.max_entries:
-                self._entries.popleft()
-            self.head = e.seq
-
-    def latest(self) -> Entry | None:
-        with self._lock:
-            return self._entries[-1] if self._entries else None
-
-    def since(self, seq: int, max_bytes: int = BATCH_BYTES) -> list[Entry] | None:
-        """The inputs after ``seq`` (at most ``max_bytes`` of them, at least one), or None if
-        the log no longer reaches back to ``seq + 1`` (a snapshot is needed)."""
-        with self._lock:
-            if seq >= self.head:
-                return []
-            if not self._entries or self._entries[0].seq > seq + 1:
-                return None
-            out: list[Entry] = []
-            size = 0
-            start = seq + 1 - self._entries[0].seq
-            for k in range(start, len(self._entries)):
-                e = self._entries[k]
-                if out and size + len(e.payload) > max_bytes:
-                    break
-                out.append(e)
-                size += len(e.payload) + 200
-            return out
-
-    def snapshot(self, seq: int | None = None) -> tuple[int, bytes] | None:
-        """The cached snapshot (of ``seq`` if given) if the log still continues it."""
-        with self._lock:
-            s = self._snapshot
-            if s is None or (seq is not None and s[0] != seq):
-                return None
-            if s[0] < self.head and (not self._entries or self._entries[0].seq > s[0] + 1):
-                return None
-            return s
-
-    def keep_snapshot(self, seq: int, blob: bytes) -> None:
-        with self._lock:
-            self._snapshot = (int(seq), blob)
-
-
-class PrimaryLink:
-    """The primary's side of one map's replication: the log, the pushes, the catch-up
-    queryable and the standbys it sees (their liveliness tokens and confirmed seqs)."""
-
-    def __init__(self, server: Server, st: MapState, keys: wire.Keys,
-                 recent: list[Entry] | None = None, sync: int = 0, epoch: int = 0) -> None:
-        o = server.opts
-        self.server, self.st, self.keys = server, st, keys
-        self.epoch = int(epoch)
-        """How many takeovers made this primary (0: started with --map). Two primaries that
-        meet (one was cut off while a standby took over) keep the higher epoch's (then the
-        smaller id's) and the other steps down."""
-        self.sync = max(0, int(o.sync_standbys), int(sync))
-        self.timeout_s = float(o.sync_timeout_s)
-        self.log = ReplLog(st.seq - len(recent or []), o.repl_log)
-        for e in recent or []:  # a promoted standby's last inputs: the others catch up from it
-            self.log.append(e)
-        self.confirmed = st.seq  # acknowledged inputs before this link are not its business
-        self._lock = threading.Lock()
-        self._standbys: dict[str, int] = {}  # zid -> last seq it confirmed (-1: none yet)
-        self._config = {"options": st.map.options(), "n_samples": st.n_samples,
-                        "checkpoint_every": o.checkpoint_every, "sync_standbys": self.sync,
-                        "epoch": self.epoch,
-                        "disk_snapshot_every": o.disk_snapshot_every,
-                        "snapshot_every": st.history.snapshot_every,
-                        "snapshots_kept": st.history.snapshots_kept,
-                        "retract_window_bytes": st.history.max_bytes,
-                        "gate_defer": (None if st.deferral is None
-                                       else st.deferral.options.to_dict())}
-        s = server.session
-        self._entities: list[Any] = [
-            s.liveliness().declare_subscriber(keys.standby_any, self._on_token, history=True),
-            s.declare_queryable(keys.log, self._on_log, complete=True),
-            s.liveliness().declare_subscriber(keys.alive_any, self._on_primary),
-        ]
-
-    def close(self) -> None:
-        undeclare_all(self._entities)
-
-    # ---------------------------------------------------------------- standbys
-    def _on_token(self, sample: zenoh.Sample) -> None:
-        zid = _zid_of(sample.key_expr)
-        if zid == self.server.server_id:
-            return  # this server's own token as a standby, before it took over
-        with self._lock:
-            if sample.kind == zenoh.SampleKind.PUT:
-                self._standbys.setdefault(zid, -1)
-                log.info("map %r: standby %s joined", self.st.name, zid)
-            else:
-                self._standbys.pop(zid, None)
-                log.info("map %r: standby %s left", self.st.name, zid)
-
-    def _on_primary(self, sample: zenoh.Sample) -> None:
-        """Another primary of this map appeared (this server was cut off and a standby took
-        over, or two standbys promoted across a partition): settle it off Zenoh's thread."""
-        zid = _zid_of(sample.key_expr)
-        if sample.kind == zenoh.SampleKind.PUT and zid != self.server.server_id:
-            threading.Thread(target=self._contest, args=(zid,), daemon=True,
-                             name=f"mcsm-contest-{self.st.name}").start()
-
-    def _contest(self, other: str) -> None:
-        """Step down if ``other`` has the higher epoch (or the same and a smaller id)."""
-        try:
-            self._settle(other)
-        except (zenoh.ZError, McsmError) as exc:  # the session or the worker closed meanwhile
-            log.info("map %r: not settled with %s: %s", self.st.name, other, exc)
-
-    def _settle(self, other: str) -> None:
-        epoch = None
-        for _ in range(10):  # its info, a few tries while it is coming up
-            for reply in self.server.session.get(self.keys.info, timeout=2.0,
-                                                 target=zenoh.QueryTarget.ALL,
-                                                 consolidation=zenoh.ConsolidationMode.NONE):
-                rid = str(reply.replier_id.zid) if reply.replier_id is not None else ""
-                if rid == other and reply.ok is not None:
-                    try:
-                        epoch = wire.decode_info_reply(reply.ok.payload.to_bytes()).epoch
-                    except McsmError:
-                        continue
-            if epoch is not None or self.server.closed:
-                break
-            time.sleep(0.2)
-        if epoch is None:
-            log.warning("map %r: another primary %s appeared but did not answer info",
-                        self.st.name, other)
-            return
-        if epoch > self.epoch or (epoch == self.epoch and other < self.server.server_id):
-            why = (f"server {other} serves it too with epoch {epoch} (this server: epoch "
-                   f"{self.epoch}): this server was cut off while a standby took over")
-            self.server.run_in_worker(lambda: self.server.step_down(self.st.name, why),
-                                      timeout_s=60.0)
-        else:
-            log.warning("map %r: server %s serves it too (epoch %d); it steps down (this "
-                        "server: epoch %d)", self.st.name, other, epoch, self.epoch)
-
-    def standbys(self) -> dict[str, int]:
-        """Live standbys and the last seq each confirmed (0 if none yet)."""
-        with self._lock:
-            return {z: max(0, s) for z, s in self._standbys.items()}
-
-    def can_accept(self) -> bool:
-        """Whether enough standbys are alive to acknowledge a new update."""
-        with self._lock:
-            return len(self._standbys) >= self.sync
-
-    def refusal(self, reason: str) -> NotReplicated:
-        with self._lock:
-            have = len(self._standbys)
-        return NotReplicated(self.st.name, have, self.sync, reason)
-
-    def _note(self, reply: zenoh.Reply) -> tuple[str, int] | None:
-        """The (standby, seq it holds) of a push reply, recorded; None if not a confirmation."""
-        if reply.ok is None:
-            return None
-        try:
-            d = _unpack(reply.ok.payload.to_bytes())
-            zid, seq = str(d["zid"]), int(d["seq"])
-        except (McsmError, KeyError, TypeError, ValueError):
-            return None
-        with self._lock:
-            if zid in self._standbys:
-                self._standbys[zid] = max(self._standbys[zid], seq)
-        return zid, seq
-
-    # ---------------------------------------------------------------- pushes (worker)
-    def push(self, e: Entry) -> bool:
-        """Log ``e`` and send it to the standbys; True when ``sync`` of them hold it."""
-        self.log.append(e)
-        return self._send(e)
-
-    def ensure(self, seq: int) -> bool:
-        """For a retried request applied as ``seq``: True once ``sync`` standbys hold it
-        (the latest input is pushed again; a standby that is behind catches up)."""
-        if self.sync == 0 or seq <= self.confirmed:
-            return True
-        e = self.log.latest()
-        return e is not None and self._send(e)
-
-    def _send(self, e: Entry) -> bool:
-        with self._lock:
-            n = len(self._standbys)
-        if n == 0:
-            return self.sync == 0
-        payload = _pack({"t": "push", "primary": self.server.server_id, "epoch": self.epoch,
-                         "entry": e.to_obj()})
-        kw: dict[str, Any] = {"payload": payload, "target": zenoh.QueryTarget.ALL,
-                              "consolidation": zenoh.ConsolidationMode.NONE,
-                              "congestion_control": zenoh.CongestionControl.BLOCK,
-                              "timeout": self.timeout_s}
-        if self.sync == 0:
-            self.server.session.get(self.keys.standby_any, handler=self._note_async, **kw)
-            return True
-        # every reply is noted (the lag of each standby in info), but the worker waits only
-        # for the first ``sync`` confirmations, or for the query's end (all replied, timeout)
-        have: set[str] = set()
-        wake = threading.Event()
-
-        def on_reply(reply: zenoh.Reply) -> None:
-            got = self._note(reply)
-            if got is not None and got[1] >= e.seq:
-                have.add(got[0])
-                if len(have) >= self.sync:
-                    wake.set()
-
-        self.server.session.get(self.keys.standby_any, **kw, handler=zenoh.handlers.Callback(
-            on_reply, wake.set, indirect=False))
-        wake.wait(self.timeout_s + 1.0)
-        if len(have) >= self.sync:
-            self.confirmed = max(self.confirmed, e.seq)
-            return True
-        log.warning("map %r: seq %d confirmed by %d of %d synchronous standbys within %.3g s",
-                    self.st.name, e.seq, len(have), self.sync, self.timeout_s)
-        return False
-
-    def _note_async(self, reply: zenoh.Reply) -> None:
-        self._note(reply)
-
-    # ---------------------------------------------------------------- catch-up (zenoh thread)
-    def _on_log(self, query: zenoh.Query) -> None:
-        try:
-            req = _unpack(query.payload.to_bytes() if query.payload is not None else b"")
-            body = self._catch_up(req)
-            query.reply(self.keys.log, _pack(body), encoding=wire.ENCODING)
-        except McsmError as exc:
-            query.reply_err(wire.encode_error(exc), encoding=wire.ENCODING)
-        except Exception:  # a standby's request must never kill the primary's thread
-            log.exception("catch-up request")
-            query.reply_err(wire.encode_error(McsmError("internal error")),
-                            encoding=wire.ENCODING)
-        finally:
-            query.drop()
-
-    def _catch_up(self, req: dict[str, Any]) -> dict[str, Any]:
-        base = {"config": self._config, "primary": self.server.server_id}
-        part = req.get("snapshot")
-        if part is not None:  # [seq, offset] of a snapshot being downloaded
-            seq, offset = int(part[0]), int(part[1])
-            snap = self.log.snapshot(seq)
-            if snap is None:
-                raise McsmError(f"snapshot {seq} is gone; ask again")
-            return {**base, "snapshot": self._part(snap, offset), "head": self.log.head}
-        have = int(req.get("from", -1))  # -1: a new standby (it starts from the empty map)
-        entries = self.log.since(max(0, have))
-        if entries is not None:
-            return {**base, "entries": [e.to_obj() for e in entries], "head": self.log.head}
-        snap = self.log.snapshot()
-        if snap is None:
-            snap = self.server.run_in_worker(self._take_snapshot, timeout_s=120.0)
-        return {**base, "snapshot": self._part(snap, 0), "head": self.log.head}
-
-    @staticmethod
-    def _part(snap: tuple[int, bytes], offset: int) -> dict[str, Any]:
-        seq, blob = snap
-        return {"seq": seq, "size": len(blob), "offset": offset,
-                "part": blob[offset:offset + PART_BYTES]}
-
-    def _take_snapshot(self) -> tuple[int, bytes]:
-        st = self.st
-        blob = _pack({"seq": st.seq, "digest": st.digest(), "verdicts": dict(st.verdicts),
-                      "state": encode_snapshot(st.map.snapshot()), "ids": st.export_ids(),
-                      "deferral": None if st.deferral is None else st.deferral.state.encode()})
-        self.log.keep_snapshot(st.seq, blob)
-        return st.seq, blob
-
-
-# ------------------------------------------------------------------------------ a standby
-class Follower:
-    """A standby of one map: applies the primary's stream, catches up, takes over."""
-
-    def __init__(self, server: Server, name: str, keys: wire.Keys) -> None:
-        self.server, self.name, self.keys = server, name, keys
-        self.st: MapState | None = None
-        self.checkpoint_every = 100
-        self.sync = 0  # the primary's --sync-standbys: kept when this standby takes over
-        self.epoch = 0  # the primary's epoch: this standby takes over with the next one
-        self.disk_snapshot_every = 0
-        self.primary: str | None = None
-        self.stopped: str | None = None  # why this standby stopped following (never promoted)
-        self.promoted = False
-        self._need = threading.Event()
-        self._primary_seen = threading.Event()
+    def __init__(self, server: Server, link: NatsLink, name: str, keys: wire.Keys,
+                 claim: bool, state: MapState | None = None) -> None:
+        self.server, self.link, self.name, self.keys = server, link, name, keys
+        self.claim = claim  # --map: take the lease at start (refuse if another holds it)
+        self.st = state
+        self.log = MapLog(link, keys.prefix, name)
+        self.lease = Lease(link.leases, self.log.key, server.server_id, link.lease_ttl_s)
+        self.role = "standby"
+        self.base = 0
+        self.config: dict[str, Any] | None = None
+        self.checkpoint_every = server.opts.checkpoint_every
+        self.disk_snapshot_every = server.opts.disk_snapshot_every
+        self.recorded = -1  # the last seq of this map in the recording (-1: none yet)
+        self.dirty = False  # the state holds an input the log refused or may not hold
+        self.stopped: str | None = None
+        self.lost_at: float | None = None
+        self.takeovers = 0
+        self.standbys: dict[str, int] = {}
         self._stop = threading.Event()
-        self._elections = 0
-        self.lost_at: float | None = None  # monotonic time the primary's token went away
-        self.recent: deque[Entry] = deque(maxlen=max(1, int(server.opts.repl_log)))
-        s = server.session
-        zid = server.server_id
-        self._entities: list[Any] = [
-            s.declare_queryable(keys.standby(zid), self._on_query, complete=True),
-            s.liveliness().declare_token(keys.standby(zid)),
-            s.liveliness().declare_subscriber(keys.alive_any, self._on_alive, history=True),
-        ]
-        self._thread = threading.Thread(target=self._loop, name=f"mcsm-standby-{name}",
-                                        daemon=True)
-        self._need.set()
-        self._thread.start()
-        log.info("standby of map %r (server %s)", name, zid)
+        self._task: Any = None
+        self._listing: asyncio.Task[None] | None = None  # the primary's standby listing
+        self._keeper: asyncio.Task[None] | None = None  # the lease's renewals
+        self._progress_at = time.monotonic()  # when the consumer last delivered (or was made)
+        self._snap_busy = False
+        self.promoted = threading.Event()
 
-    def close(self) -> None:
-        self._stop.set()
-        self._undeclare()
-        if self._thread.is_alive() and threading.current_thread() is not self._thread:
-            self._thread.join(timeout=10.0)
-
-    def _undeclare(self) -> None:
-        undeclare_all(self._entities)
-
+    # ------------------------------------------------------------ queries from the worker
     @property
     def seq(self) -> int:
         return self.st.seq if self.st is not None else -1
 
-    # ---------------------------------------------------------------- zenoh callbacks
-    def _on_alive(self, sample: zenoh.Sample) -> None:
-        zid = _zid_of(sample.key_expr)
-        if zid == self.server.server_id:
+    @property
+    def term(self) -> int:
+        """The lease's revision when this server last took it (``info.epoch``)."""
+        return self.lease.term
+
+    def may_ack(self) -> bool:
+        return self.role == "primary" and not self.dirty and self.lease.valid()
+
+    # ------------------------------------------------------------ start (server thread)
+    def start(self, timeout_s: float = 60.0) -> None:
+        """Read (or make) the map's config and stream; with ``claim``, take the lease or
+        raise; then run the replica's loop.
+
+        Raises
+        ------
+        McsmError
+            ``claim`` and another server holds the lease (the only check that refuses a
+            replicated map already served), or the stream exists and this server restored
+            another state.
+        """
+        self.link.run(self._setup(time.monotonic() + timeout_s - 1.0), timeout_s)
+        self._task = self.link.spawn(self._main())
+        self._task.add_done_callback(self._loop_ended)
+
+    def _loop_ended(self, fut: Any) -> None:
+        if self._stop.is_set():
             return
-        if sample.kind == zenoh.SampleKind.PUT:
-            self.primary = zid
-            self.lost_at = None
-            self._primary_seen.set()
-            self._need.set()
-            log.info("map %r: following primary %s", self.name, zid)
-        elif zid == self.primary:
-            self.primary = None
-            self.lost_at = time.monotonic()
-            self._primary_seen.clear()
-            log.warning("map %r: primary %s is gone", self.name, zid)
-            threading.Thread(target=self._elect, args=(zid,), name=f"mcsm-elect-{self.name}",
-                             daemon=True).start()
+        exc = None if fut.cancelled() else fut.exception()
+        self._stop_following(f"its replication loop ended: {exc!r}")
 
-    def _on_query(self, query: zenoh.Query) -> None:
-        """A push or a status request: both answered by the worker, in arrival order."""
-        try:
-            d = _unpack(query.payload.to_bytes() if query.payload is not None else b"")
-            kind = d.get("t")
-            if kind == "push":
-                e = Entry.from_obj(d.get("entry"))
-                sender = str(d.get("primary", ""))
-                epoch = d.get("epoch", 0)
-                if type(epoch) is not int or epoch < 0:
-                    raise BadMessage("epoch", "an integer >= 0", repr(epoch)[:40])
-                task: Callable[[], None] = lambda: self._reply_push(  # noqa: E731
-                    query, e, sender, epoch)
-            elif kind == "status":
-                task = lambda: self._reply(query, {"t": "status"})  # noqa: E731
-            else:
-                raise BadMessage("t", "push or status", repr(kind)[:40])
-        except McsmError as exc:
-            query.reply_err(wire.encode_error(exc), encoding=wire.ENCODING)
-            query.drop()
+    async def _setup(self, deadline: float) -> None:
+        """With ``claim``, the lease first: a standby sees a new map's config only once its
+        primary holds the lease, so it never takes over a map whose primary is starting. The
+        lease's renewals run from here on beside everything else (:meth:`_keep_lease`)."""
+        if self._keeper is None:
+            self._keeper = asyncio.create_task(self._keep_lease())
+        if self.claim and not await retry("the map's lease", self.lease.acquire, deadline):
+            holder = await self.lease.holder_now()
+            raise McsmError(f"map {self.name!r} is served by server {holder} (it holds the "
+                            "map's lease): refusing to serve it a second time (to follow it, "
+                            f"start this server with --standby-of {self.name})")
+        cfg = await self._step("the map's config", self.log.read_config, deadline)
+        if cfg is None and self.claim:
+            st = self.st
+            assert st is not None
+            if st.seq > 0:  # a restored map: its stream starts at its seq, from a snapshot
+                blob = self._snapshot_blob(st)
+                await self._step("the map's snapshot", lambda: self.log.upload(blob), deadline)
+            mine = self._config_of(st)
+            await self._step("the map's log", lambda: self.log.create(
+                mine, self.server.opts.id_ttl_s), deadline)
+            cfg = await self._step("the map's config", self.log.read_config, deadline)
+        if cfg is not None:
+            self._use_config(cfg)
+        if not self.claim:
             return
-        if not self.server.submit(task, lambda: query.drop()):
-            query.reply_err(wire.encode_error(McsmError("standby queue full")),
-                            encoding=wire.ENCODING)
-            query.drop()
+        last = await self._step("the log's head", self.log.head, deadline)
+        if self.st is not None and self.st.seq > 0 and self.st.seq != self.base + last:
+            await self.lease.release()
+            raise McsmError(f"map {self.name!r}: its log holds {last} inputs after seq "
+                            f"{self.base}; this server restored seq {self.st.seq}: start it "
+                            "without --restore (it catches up from the log)")
+        if self.st is not None and self.st.seq == 0 and last > 0:
+            self.st = None  # a new empty map, but the log has the map: build it from there
 
-    def _reply(self, query: zenoh.Query, extra: dict[str, Any]) -> None:
-        ok = self.st is not None and self.stopped is None and not self.promoted
-        body = {**extra, "zid": self.server.server_id, "seq": self.seq if ok else -1}
+    async def _step(self, what: str, make: Callable[[], Awaitable[T]], deadline: float) -> T:
+        """A step of starting (:func:`retry`; the lease is renewed beside it)."""
+        return await retry(what, make, deadline)
+
+    async def _keep_lease(self) -> None:
+        """The lease's only renewer, from the start to :meth:`stop_loop`, beside everything
+        else the replica does on the NATS loop: a step of starting, a consumer's creation or
+        a fetch can each take longer than the lease's TTL when the cluster is slow or
+        electing (a ``--map`` server lost its lease during a 5 s config read that way)."""
+        poll = min(0.1, self.link.lease_ttl_s / 10)
+        for _ in iter(int, 1):  # until cancelled (stop_loop)
+            lease = self.lease
+            try:
+                if lease.holding and time.monotonic() >= lease.renew_at:
+                    await lease.renew()  # False: lost (holding cleared); None: try again soon
+            except asyncio.CancelledError:
+                if self._stop.is_set():
+                    raise
+            except Exception as exc:  # renew() answers its own errors; anything else: go on
+                log.warning("map %r: lease renewal: %s: %s", self.name, type(exc).__name__,
+                            exc)
+            wait = lease.renew_at - time.monotonic() if lease.holding else poll
+            await asyncio.sleep(max(0.01, min(poll, wait)))
+
+    def _config_of(self, st: MapState) -> dict[str, Any]:
+        return {"options": st.map.options(), "n_samples": st.n_samples,
+                "checkpoint_every": self.checkpoint_every, "base": st.seq,
+                "disk_snapshot_every": self.disk_snapshot_every,
+                "snapshot_every": st.history.snapshot_every,
+                "snapshots_kept": st.history.snapshots_kept,
+                "retract_window_bytes": st.history.max_bytes,
+                "gate_defer": (None if st.deferral is None
+                               else st.deferral.options.to_dict())}
+
+    def _use_config(self, cfg: dict[str, Any]) -> None:
+        self.config = cfg
+        self.base = int(cfg.get("base", 0))
+        self.checkpoint_every = max(1, int(cfg["checkpoint_every"]))
+        self.disk_snapshot_every = max(0, int(cfg.get("disk_snapshot_every", 0)))
+
+    # ------------------------------------------------------------ the loop (NATS thread)
+    async def _main(self) -> None:
+        poll = min(0.1, self.link.lease_ttl_s / 10)
+        next_try = 0.0
+        next_standbys = 0.0
+        for _ in iter(int, 1):  # until stopped (cancelled, or self._stop)
+            if self._stop.is_set():
+                return
+            try:
+                if self.stopped is not None:
+                    if self.lease.holding:
+                        await self.lease.release()
+                    await asyncio.sleep(0.5)
+                elif self.role == "primary":
+                    if not self.lease.holding:  # the keeper's renewal found it lost
+                        await self._demote("lost the lease (it expired or another server "
+                                           "holds it)")
+                        continue
+                    if time.monotonic() > next_standbys and (
+                            self._listing is None or self._listing.done()):
+                        # its own task: a slow listing must never hold back a renewal
+                        self._listing = asyncio.create_task(self._refresh_standbys())
+                        next_standbys = time.monotonic() + 1.0
+                    await asyncio.sleep(poll)
+                else:
+                    if self.dirty and self.lease.holding:
+                        await self.lease.release()
+                    await self._standby_round()
+                    if self.role == "standby" and self.st_ready() and (
+                            self.lease.holding or time.monotonic() > next_try):
+                        next_try = time.monotonic() + poll
+                        if self.lease.holding or await self.lease.try_take():
+                            await self._take_over()
+            except asyncio.CancelledError:
+                if self._stop.is_set():
+                    raise
+                # not ours (nats-py cancels a request when its connection drops): go on
+                log.warning("map %r (%s): a NATS call was cancelled", self.name, self.role)
+                await asyncio.sleep(0.2)
+            except Exception as exc:  # NATS unreachable, a consumer gone: retry, bounded
+                log.warning("map %r (%s): %s: %s", self.name, self.role, type(exc).__name__,
+                            exc)
+                await self.log.unfollow()
+                await asyncio.sleep(0.2)
+
+    def st_ready(self) -> bool:
+        return self.st is not None and not self.dirty and self.stopped is None
+
+    async def _take_over(self) -> None:
+        """Holding the lease: apply the whole stream (its head as its leader sees it, read
+        after the lease was taken), then serve."""
+        loop = asyncio.get_running_loop()
+        head = self.base + await self.log.head()
+        for _ in range(1_000_000):
+            if self.seq >= head or self.stopped is not None or self.dirty:
+                break
+            if not self.lease.holding:  # lost while catching up (the keeper renews it)
+                return
+            await self._standby_round()
+        if self.seq != head or self.stopped is not None or self.dirty:
+            await self.lease.release()
+            return
+        await self.log.unfollow()
+        ok = await loop.run_in_executor(None, lambda: self.server.run_in_worker(
+            lambda: self.server.promote(self), timeout_s=60.0))
+        if not ok:
+            await self.lease.release()
+
+    async def _demote(self, why: str) -> None:
+        loop = asyncio.get_running_loop()
+        self.lease.valid_until = 0.0
+        log.warning("map %r: stops being primary: %s", self.name, why)
+        await loop.run_in_executor(None, lambda: self.server.run_in_worker(
+            lambda: self.server.demote(self, why), timeout_s=120.0))
+
+    async def _refresh_standbys(self) -> None:
         try:
-            query.reply(query.key_expr, _pack(body), encoding=wire.ENCODING)
-        except zenoh.ZError as exc:
-            log.debug("standby reply: %s", exc)
+            got = await self.log.standbys()
+        except Exception as exc:  # the list stays as it was; tried again in a second
+            log.info("map %r: listing the standbys: %s: %s", self.name, type(exc).__name__,
+                     exc)
+            return
+        self.standbys = {sid: self.base + seq for sid, seq in got.items()}
 
-    # ---------------------------------------------------------------- the worker
-    def _reply_push(self, query: zenoh.Query, e: Entry, sender: str, epoch: int) -> None:
-        if self.promoted or self.stopped is not None:
-            pass
-        elif sender != self.primary:  # not (yet) the server whose token this standby sees
-            log.warning("map %r: ignoring a push from %r (following %s)", self.name, sender,
-                        self.primary)
-        else:
-            self.epoch = epoch  # a takeover by this standby is the next epoch
-            if self.st is None or e.seq > self.st.seq + 1:
-                self._need.set()
-            elif e.seq == self.st.seq + 1:
-                self._apply(e)
-            elif not self._same(e):
-                self._stop_following(f"seq {e.seq} here is another input than the primary's "
-                                     f"({e.request_id!r}): the histories forked")
-        self._reply(query, {"t": "have"})
-
-    def _same(self, e: Entry) -> bool:
-        """Whether the input this standby holds at ``e.seq`` is ``e`` (True if too old to
-        tell: only the last ``--repl-log`` inputs are kept)."""
-        k = e.seq - self.recent[0].seq if self.recent else -1
-        if not 0 <= k < len(self.recent):
-            return True
-        mine = self.recent[k]
-        return mine.request_id == e.request_id and mine.payload == e.payload
-
-    def _ensure_state(self, config: dict[str, Any]) -> MapState:
+    # ------------------------------------------------------------ standby: fetch and apply
+    async def _standby_round(self) -> None:
+        loop = asyncio.get_running_loop()
+        if self.dirty:
+            await loop.run_in_executor(None, lambda: self.server.run_in_worker(
+                self._rebuild, timeout_s=600.0))
+            return
         if self.st is None:
-            o = self.server.opts
-            smap = StochasticMap.from_options(dict(config["options"]))
-            st = MapState(self.name, smap, o.lru_size, o.id_ttl_s,
-                          snapshot_every=int(config["snapshot_every"]),
-                          snapshots_kept=int(config["snapshots_kept"]),
-                          gate_defer=DeferOptions.from_dict(config.get("gate_defer")),
-                          retract_window_bytes=config.get("retract_window_bytes"))
-            self.checkpoint_every = max(1, int(config["checkpoint_every"]))
-            self.disk_snapshot_every = max(0, int(config.get("disk_snapshot_every", 0)))
-            rec = self.server.recorder
+            await self._load_start()
+            return
+        if not self.log.following:
+            await self.log.follow(self.seq - self.base + 1)
+            self._progress_at = time.monotonic()
+        entries = [(self.base + s, e) for s, e in await self.log.fetch()]
+        if entries:
+            self._progress_at = time.monotonic()
+            await loop.run_in_executor(None, lambda: self.server.run_in_worker(
+                lambda: self._apply_batch(entries), timeout_s=600.0))
+        elif time.monotonic() - self._progress_at > STALL_S:
+            await self._check_stall()
+
+    async def _check_stall(self) -> None:
+        """Nothing delivered for :data:`STALL_S`: if the log is ahead of this standby, its
+        consumer is stuck (gone with a cut-off node, or left behind on a lagging one): make
+        a new one from this standby's seq."""
+        self._progress_at = time.monotonic()
+        _, last = await self.log.bounds()
+        if self.base + last <= self.seq:
+            return
+        log.warning("map %r: the log is at seq %d, this standby at %d, and its consumer "
+                    "delivered nothing for %.0f s (%s): a new consumer", self.name,
+                    self.base + last, self.seq, STALL_S, await self.log.describe_consumer())
+        await self.log.unfollow()
+
+    async def _load_start(self) -> None:
+        """A new standby: the empty map if the stream reaches back to it, else the latest
+        snapshot in the object store (when the stream continues it)."""
+        loop = asyncio.get_running_loop()
+        cfg = await self.log.read_config()
+        if cfg is None:
+            await asyncio.sleep(0.5)  # the map's primary has not made its log yet
+            return
+        self._use_config(cfg)
+        first, _ = await self.log.bounds()  # the oldest stream seq still held
+        if self.base == 0 and first <= 1:
+            await loop.run_in_executor(None, lambda: self.server.run_in_worker(
+                lambda: self._new_state(None), timeout_s=300.0))
+            return
+        blob = await self.log.download()
+        if blob is None:
+            log.warning("map %r: the log starts at seq %d and no snapshot covers it; waiting",
+                        self.name, self.base + first)
+            await asyncio.sleep(1.0)
+            return
+        d = wire.unpack(blob, max_bytes=len(blob) + 1, max_map_len=1 << 20)
+        if int(d["seq"]) < self.base + first - 1:
+            log.warning("map %r: the latest snapshot (seq %d) is older than the log's start "
+                        "(seq %d); waiting for a newer one", self.name, d["seq"],
+                        self.base + first)
+            await asyncio.sleep(1.0)
+            return
+        await loop.run_in_executor(None, lambda: self.server.run_in_worker(
+            lambda: self._new_state(d), timeout_s=300.0))
+
+    # ------------------------------------------------------------ snapshots
+    def _snapshot_blob(self, st: MapState) -> bytes:
+        return pack_obj({"seq": st.seq, "digest": st.digest(), "verdicts": dict(st.verdicts),
+                         "state": encode_snapshot(st.map.snapshot()), "ids": st.export_ids(),
+                         "deferral": None if st.deferral is None
+                         else st.deferral.state.encode()})
+
+    def snapshot_soon(self) -> None:
+        """On the worker, after an input at a ``--disk-snapshot-every`` seq: upload a
+        snapshot for late standbys (one at a time; skipped while one is uploading)."""
+        if self._snap_busy or self.st is None:
+            return
+        self._snap_busy = True
+        blob = self._snapshot_blob(self.st)
+
+        async def up() -> None:
+            try:
+                await self.log.upload(blob)
+            except Exception as exc:
+                log.warning("map %r: snapshot upload: %s", self.name, exc)
+            finally:
+                self._snap_busy = False
+
+        self.link.spawn(up())
+
+    # ------------------------------------------------------------ the worker's side
+    def _new_state(self, snap: dict[str, Any] | None) -> None:
+        cfg = self.config
+        assert cfg is not None
+        o = self.server.opts
+        st = MapState(self.name, StochasticMap.from_options(dict(cfg["options"])), o.lru_size,
+                      o.id_ttl_s, snapshot_every=int(cfg["snapshot_every"]),
+                      snapshots_kept=int(cfg["snapshots_kept"]),
+                      gate_defer=DeferOptions.from_dict(cfg.get("gate_defer")),
+                      retract_window_bytes=cfg.get("retract_window_bytes"))
+        rec = self.server.recorder
+        if rec is not None and self.recorded < 0:
+            rec.config(st, self.checkpoint_every, server_id=self.server.server_id)
+            self.recorded = 0
+        if snap is not None:
+            smap = StochasticMap.from_snapshot(decode_snapshot(snap["state"], st.n_samples))
+            st.import_ids(list(snap.get("ids", [])))
+            dfr = snap.get("deferral")
+            st.restore(int(snap["seq"]), smap, dict(snap.get("verdicts", {})),
+                       None if dfr is None else DeferState.decode(dfr, st.n_samples))
+            if st.digest() != str(snap["digest"]):
+                self._stop_following(f"the snapshot of seq {snap['seq']} does not load to "
+                                     "its digest")
+                return
             if rec is not None:
-                rec.config(st, self.checkpoint_every, server_id=self.server.server_id)
-            self.st = st
-        return self.st
+                rec.snapshot(st)
+                self.recorded = st.seq
+            log.info("map %r: loaded the snapshot of seq %d", self.name, st.seq)
+        self.st = st
 
     def _stop_following(self, why: str) -> None:
         self.stopped = why
-        log.critical("map %r: standby stops following: %s", self.name, why)
+        log.critical("map %r: this server stops following it: %s", self.name, why)
 
-    def _apply(self, e: Entry) -> None:
+    def _apply_batch(self, entries: list[tuple[int, Entry]]) -> None:
+        if self.role != "standby" or self.stopped is not None or self.dirty:
+            return
+        st = self.st
+        assert st is not None
+        for seq, e in entries:
+            if seq <= st.seq:
+                continue
+            if seq != st.seq + 1 or e.seq != seq:
+                self._stop_following(f"the log's seq {seq} follows seq {st.seq} here: the "
+                                     "log no longer reaches back to this standby (retention)"
+                                     "; restart it with a new recording")
+                return
+            if not self.apply_entry(e):
+                return
+
+    def apply_entry(self, e: Entry) -> bool:
+        """Apply and record one logged input (as replay does); False if this standby stopped."""
         st = self.st
         assert st is not None
         try:
@@ -584,15 +467,15 @@ class Follower:
         except McsmError as exc:
             self._stop_following(f"input seq {e.seq} ({e.op}) was refused here: "
                                  f"{type(exc).__name__}: {exc}")
-            return
-        self.recent.append(e)
-        rec = self.server.recorder
+            return False
         digest = st.digest() if e.digest is not None or ack.seq % self.checkpoint_every == 0 \
             else None
+        rec = self.server.recorder
         try:
-            if rec is not None:
+            if rec is not None and ack.seq > self.recorded:
                 rec.input(e.op, self.name, ack.seq, e.recv_ns, e.sender, e.request_id,
                           e.payload)
+                self.recorded = ack.seq
                 if ack.seq % self.checkpoint_every == 0 and digest is not None:
                     rec.checkpoint(self.name, ack.seq, digest, "periodic")
                 if self.disk_snapshot_every and ack.seq % self.disk_snapshot_every == 0:
@@ -602,191 +485,88 @@ class Follower:
                          self.name, exc)
             self.server.failed.set()
             self._stop_following("recording failed")
-            return
+            return False
         if e.digest is not None and digest != e.digest:
-            self._stop_following(f"digest differs from the primary's at seq {e.seq}")
+            self._stop_following(f"digest differs from the log's at seq {e.seq}")
+            return False
+        return True
 
-    def _apply_batch(self, config: dict[str, Any], entries: list[Entry]) -> None:
-        if self.stopped is not None or self.promoted:
+    def append(self, e: Entry) -> int:
+        """On the worker, for an input just applied (map seq ``e.seq``): put it in the log,
+        trying while the lease is valid; returns its map seq.
+
+        Raises
+        ------
+        Refused
+            The log refused it or could not be reached before the lease could expire: the
+            state now holds an input the log may not (``dirty``).
+        """
+        expected = e.seq - 1 - self.base
+        deadline = max(self.lease.valid_until, time.monotonic()) + 0.05
+        try:
+            return self.base + self.link.run(
+                self.log.publish(e.pack(), e.request_id, expected, deadline),
+                timeout_s=deadline - time.monotonic() + 2 * self.link.lease_ttl_s)
+        except Refused:
+            self.dirty = True
+            raise
+        except Exception as exc:
+            self.dirty = True
+            raise Refused(f"{type(exc).__name__}: {exc}") from None
+
+    def _rebuild(self) -> None:
+        """On the worker: the state holds an input the log refused: rebuild it from this
+        server's recording (every logged input it applied, nothing else), then follow."""
+        from mcsm.log.replay import replay
+
+        rec = self.server.recorder
+        self.st = None
+        self._drop_from_server()
+        if rec is None:  # no recording: start over from the log
+            self.recorded = -1
+            self.dirty = False
             return
-        self.sync = max(0, int(config.get("sync_standbys", 0)))
-        self.epoch = max(0, int(config.get("epoch", 0)))
-        st = self._ensure_state(config)
-        for e in entries:
-            if self.stopped is not None:
-                return
-            if e.seq <= st.seq:
-                continue
-            if e.seq != st.seq + 1:
-                self._need.set()
-                return
-            self._apply(e)
-
-    def _load(self, config: dict[str, Any], blob: bytes) -> None:
-        if self.stopped is not None or self.promoted:
+        # every file of a split recording (replay starts from the one with the latest snapshot)
+        rep = replay(list(rec.paths), from_snapshot=True, lru_size=self.server.opts.lru_size)
+        st = rep.states.get(self.name)
+        if rep.divergence is not None or st is None or st.seq != self.recorded:
+            self._stop_following(f"its own recording does not rebuild it (at seq "
+                                 f"{None if st is None else st.seq}, recorded "
+                                 f"{self.recorded}: {rep.divergence})")
+            self.dirty = False
             return
-        self.sync = max(0, int(config.get("sync_standbys", 0)))
-        self.epoch = max(0, int(config.get("epoch", 0)))
-        d = wire.unpack(blob, max_bytes=len(blob) + 1, max_map_len=1 << 20)
-        seq = int(d["seq"])
-        if self.st is not None and self.st.seq > 0:
-            self._stop_following(f"fell behind the primary's log (at seq {self.st.seq}, the "
-                                 f"primary sends a snapshot of seq {seq}): restart this "
-                                 "standby with a new recording")
-            return
-        st = self._ensure_state(config)
-        smap = StochasticMap.from_snapshot(decode_snapshot(d["state"], st.n_samples))
-        st.import_ids(list(d.get("ids", [])))
-        dfr = d.get("deferral")  # the held closure (--gate-defer), if any
-        st.restore(seq, smap, dict(d.get("verdicts", {})),
-                   None if dfr is None else DeferState.decode(dfr, st.n_samples))
-        if st.digest() != str(d["digest"]):
-            self._stop_following(f"the primary's snapshot of seq {seq} does not load to its "
-                                 "digest")
-            return
-        if self.server.recorder is not None:
-            self.server.recorder.snapshot(st)
-        log.info("map %r: loaded the primary's snapshot of seq %d", self.name, seq)
+        st.id_ttl_s = self.server.opts.id_ttl_s
+        self.st = st
+        self.dirty = False
+        log.warning("map %r: rebuilt from the recording at seq %d (%d inputs); following "
+                    "the log", self.name, st.seq, rep.n_inputs)
 
-    # ---------------------------------------------------------------- catch-up thread
-    def _loop(self) -> None:
-        while not self._stop.is_set():
-            if not self._need.wait(0.5):
-                continue
-            self._need.clear()
-            if self.promoted or self.stopped is not None or self.primary is None:
-                continue
-            try:
-                self._catch_up()
-            except (McsmError, zenoh.ZError, KeyError, TypeError, ValueError) as exc:
-                log.warning("map %r: catch-up: %s; trying again", self.name, exc)
-                self._stop.wait(0.5)
-                self._need.set()
+    def _drop_from_server(self) -> None:
+        self.server.states.pop(self.name, None)
 
-    def _ask(self, body: dict[str, Any]) -> dict[str, Any] | None:
-        primary = self.primary
-        if primary is None:
-            return None
-        replies = self.server.session.get(self.keys.log, payload=_pack(body), timeout=120.0,
-                                          target=zenoh.QueryTarget.ALL,
-                                          consolidation=zenoh.ConsolidationMode.NONE)
-        for reply in replies:
-            zid = str(reply.replier_id.zid) if reply.replier_id is not None else ""
-            if zid != primary:
-                continue
-            if reply.ok is None:
-                err = reply.err.payload.to_bytes() if reply.err is not None else b""
-                raise wire.decode_error(err)
-            return _unpack(reply.ok.payload.to_bytes())
-        return None
-
-    def _catch_up(self) -> None:
-        for _ in range(100_000):  # bounded; each round applies at least one input or returns
-            if self._stop.is_set() or self.promoted or self.stopped is not None:
-                return
-            d = self._ask({"from": self.seq})
-            if d is None:
-                self._need.set()
-                self._stop.wait(0.2)
-                return
-            config = d["config"]
-            if "snapshot" in d:
-                blob = self._download(d["snapshot"])
-                self.server.run_in_worker(functools.partial(self._load, config, blob),
-                                          timeout_s=300.0)
-            else:
-                entries = [Entry.from_obj(x) for x in d["entries"]]
-                self.server.run_in_worker(functools.partial(self._apply_batch, config, entries),
-                                          timeout_s=300.0)
-            if self.seq >= int(d["head"]):
-                return
-
-    def _download(self, part: dict[str, Any]) -> bytes:
-        seq, size = int(part["seq"]), int(part["size"])
-        chunks = [bytes(part["part"])]
-        got = len(chunks[0])
-        for _ in range(size // PART_BYTES + 2):
-            if got >= size:
-                break
-            d = self._ask({"snapshot": [seq, got]})
-            if d is None:
-                raise McsmError("the primary went away during a snapshot download")
-            chunk = bytes(d["snapshot"]["part"])
-            if not chunk:
-                break
-            chunks.append(chunk)
-            got += len(chunk)
-        if got != size:
-            raise McsmError(f"snapshot download: {got} of {size} bytes")
-        return b"".join(chunks)
-
-    # ---------------------------------------------------------------- takeover
-    def _statuses(self) -> dict[str, int]:
-        """Every live standby's seq (through each one's worker, after its queued inputs)."""
-        out: dict[str, int] = {}
-        replies = self.server.session.get(self.keys.standby_any, payload=_pack({"t": "status"}),
-                                          timeout=2.0, target=zenoh.QueryTarget.ALL,
-                                          consolidation=zenoh.ConsolidationMode.NONE)
-        for reply in replies:
-            if reply.ok is None:
-                continue
-            try:
-                d = _unpack(reply.ok.payload.to_bytes())
-                out[str(d["zid"])] = int(d["seq"])
-            except (McsmError, KeyError, TypeError, ValueError):
-                continue
-        # this standby, after the inputs already queued on its worker
-        out[self.server.server_id] = self.server.run_in_worker(
-            lambda: self.seq if self.stopped is None and self.st is not None else -1,
-            timeout_s=60.0)
-        return out
-
-    def connected(self) -> bool:
-        """Whether this server still reaches any other Zenoh node (a router or a peer). A
-        server cut off from the network sees every other server's token go away: it must not
-        take that for the primary's death (a router restart would split the map in two)."""
-        info = self.server.session.info
-        return bool(list(info.routers_zid()) or list(info.peers_zid()))
-
-    def _elect(self, lost: str) -> None:
-        """Until a primary serves the map again: find the standby that takes over (the
-        highest seq, then the smallest id) and promote this one if it is that standby. Runs
-        on its own thread; ends when this server stops, takes over or follows a primary."""
-        self._elections += 1
-        isolated_logged = False
-        self._stop.wait(SETTLE_S)  # let a lost link show in the session's routers and peers
-        while not (self._stop.is_set() or self.promoted or self.primary is not None):
-            if not self.connected():
-                if not isolated_logged:
-                    log.warning("map %r: primary %s lost, but this server reaches no router "
-                                "or peer: not taking over while cut off", self.name, lost)
-                    isolated_logged = True
-                self._stop.wait(0.5)
-                continue
-            statuses = {z: s for z, s in self._statuses().items() if s >= 0}
-            if self.primary is not None:
-                return
-            if not statuses:
-                self._stop.wait(0.5)
-                continue
-            winner = min(statuses, key=lambda z: (-statuses[z], z))
-            log.info("map %r: primary %s lost; standbys %s; %s takes over", self.name, lost,
-                     statuses, winner)
-            if winner == self.server.server_id:
-                if self.server.run_in_worker(lambda: self.server.promote(self),
-                                             timeout_s=60.0):
-                    return
-            if self._primary_seen.wait(3.0):
-                return
-
-    def became_primary(self) -> MapState:
-        """Called by the server's worker once it declared the map's keys."""
-        assert self.st is not None
-        self.promoted = True
+    # ------------------------------------------------------------ stop
+    def stop_loop(self) -> None:
+        """Stop fetching, renewing and taking over (the worker may still append)."""
         self._stop.set()
-        self._undeclare()
-        return self.st
+        if self._task is not None:
+            self._task.cancel()
+        keeper = self._keeper
+        if keeper is not None and self.link.loop.is_running():
+            self.link.loop.call_soon_threadsafe(keeper.cancel)
+
+    def close(self, release: bool) -> None:
+        self.stop_loop()
+        try:
+            self.link.run(self._close(release), 5.0)
+        except Exception as exc:
+            log.debug("replica close: %s", exc)
+
+    async def _close(self, release: bool) -> None:
+        await self.log.unfollow()
+        if release and self.role == "primary":
+            await self.lease.release()
 
 
-__all__ = ["TAKEOVER", "undeclare_all", "Entry", "Follower", "PrimaryLink", "ReplLog",
-           "DEFAULT_LOG_ENTRIES", "DEFAULT_SYNC_TIMEOUT_S"]
+__all__ = ["DEFAULT_LEASE_TTL_S", "DEFAULT_LOG_MAX_AGE_S", "DEFAULT_LOG_MAX_BYTES",
+           "DEFAULT_REPLICAS", "TAKEOVER", "Entry", "NatsLink", "NatsOptions", "Refused",
+           "Replica", "pack_entry", "stream_name"]

@@ -13,7 +13,7 @@ Threads and ownership:
   at once with a ``Busy`` error (a ``LimitExceeded``): the client may retry later with the
   same request id.
 * One worker thread owns every :class:`~mcsm.state.MapState` and the
-  :class:`~mcsm.recording.Recorder`. It takes requests in arrival order, assigns each applied
+  :class:`~mcsm.log.writer.Recorder`. It takes requests in arrival order, assigns each applied
   operation the map's next sequence number, applies it through the core, records it (flushed),
   and only then acknowledges and publishes the event. Queries, info and exports go through the
   same worker, so they see a consistent state between two operations; the worker takes them
@@ -42,13 +42,13 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import zenoh
 
 from mcsm import wire
 from mcsm.core.smap import StochasticMap
-from mcsm.errors import Busy, InternalError, McsmError
+from mcsm.errors import Busy, InternalError, McsmError, NotReplicated
 from mcsm.lanes import Full, Lanes
 from mcsm.log.replay import replay
 from mcsm.log.topics import RecordingError, decode_input
@@ -57,15 +57,9 @@ from mcsm.map import ops
 from mcsm.map.deferral import DeferOptions
 from mcsm.map.history import DEFAULT_SNAPSHOT_EVERY, DEFAULT_SNAPSHOTS_KEPT, DEFAULT_WINDOW_BYTES
 from mcsm.map.state import DEFAULT_ID_TTL_S, DEFAULT_LRU, MapState
-from mcsm.replication import (
-    DEFAULT_LOG_ENTRIES,
-    DEFAULT_SYNC_TIMEOUT_S,
-    TAKEOVER,
-    Entry,
-    Follower,
-    PrimaryLink,
-    undeclare_all,
-)
+
+if TYPE_CHECKING:  # imported only by a server with --nats (mcsm.replication needs nats-py)
+    from mcsm.replication import NatsLink, NatsOptions, Replica
 
 log = logging.getLogger(__name__)
 
@@ -82,7 +76,8 @@ class ServerOptions:
     """Constructor arguments of new maps (:func:`new_map`; the gate defaults to 0.99)."""
     record: Path | None = None
     restore: Path | list[Path] | None = None
-    """A recording, or the files of a split recording in set order (:func:`mcsm.recset.resolve`)."""
+    """A recording, or the files of a split recording in set order
+    (:func:`mcsm.log.recset.resolve`)."""
     checkpoint_every: int = 100
     queue_size: int = 1024
     queue_bytes: int = 128 * 1024 * 1024
@@ -105,15 +100,13 @@ class ServerOptions:
     """``--gate-defer``: hold the first closure of a revisit until a second one agrees (None:
     off). Recorded in the map's config; a restored map keeps its recorded policy."""
     standby_of: list[str] = field(default_factory=list)
-    """Maps this server follows as a hot standby (:mod:`mcsm.replication`)."""
-    sync_standbys: int = 0
-    """Standbys that must hold an update before the primary acknowledges it."""
-    sync_timeout_s: float = DEFAULT_SYNC_TIMEOUT_S
-    repl_log: int = DEFAULT_LOG_ENTRIES
-    """Inputs per map kept in memory for standbys that catch up."""
+    """Maps this server follows as a hot standby (:mod:`mcsm.replication`; needs ``nats``)."""
+    nats: NatsOptions | None = None
+    """``--nats``: replicate every map through this NATS JetStream cluster."""
     device: str = "cpu"
     """``--device``: where this server's maps keep their edges (``cpu`` or ``cuda``; not a
-    map option: digests are the same on every device). Standbys' maps stay on the CPU."""
+    map option: digests are the same on every device). A standby's map, and one rebuilt
+    after a demotion (:mod:`mcsm.replication`), stays on the CPU."""
 
 
 @dataclass
@@ -163,10 +156,9 @@ class Server:
         self._close_lock = threading.Lock()
         self.failed = threading.Event()  # set when the worker hit a fatal error
         self._reject_lock = threading.Lock()
-        self.links: dict[str, PrimaryLink] = {}  # maps this server is primary of
-        self.followers: dict[str, Follower] = {}  # maps this server is a standby of
+        self.link: NatsLink | None = None  # --nats: the replicated log's connection
+        self.replicas: dict[str, Replica] = {}  # replicated maps (primary or standby here)
         self._map_entities: dict[str, list[Any]] = {}  # a served map's queryable and token
-        self.deposed: dict[str, str] = {}  # maps another primary took from this server: why
 
     # ---------------------------------------------------------------- lifecycle
     def start(self) -> None:
@@ -183,10 +175,13 @@ class Server:
         both = sorted(set(o.maps) & set(o.standby_of))
         if both:
             raise McsmError(f"map {both[0]!r} is both served and followed as a standby")
+        if o.standby_of and o.nats is None:
+            raise McsmError("--standby-of needs the map's log: add --nats URL (docs/fleet.md)")
         if o.standby_of and o.restore is not None:
-            raise McsmError("a standby copies its state from the primary: --standby-of "
+            raise McsmError("a standby copies its state from the log: --standby-of "
                             "cannot be combined with --restore")
-        self.check_not_served(list(o.maps))
+        if o.nats is None:  # a replicated map is refused by its lease (Replica.start)
+            self.check_not_served(list(o.maps))
         restore = ([] if o.restore is None else
                    [Path(o.restore)] if isinstance(o.restore, (str, Path)) else list(o.restore))
         if o.record is not None:
@@ -214,6 +209,7 @@ class Server:
             for st in self.states.values():
                 if self.recorder is not None:
                     self.recorder.checkpoint(st.name, st.seq, st.digest(), "restore")
+        restored = set(self.states)
         maps = list(o.maps) or ([] if self.states or o.standby_of else [wire.DEFAULT_MAP])
         for name in maps:
             if name in self.states:
@@ -230,19 +226,54 @@ class Server:
                           snapshots_kept=o.snapshots_kept, gate_defer=o.gate_defer,
                           retract_window_bytes=o.retract_window_bytes)
             self.states[name] = st
-            if self.recorder is not None:
+            if self.recorder is not None and o.nats is None:
                 self.recorder.config(st, o.checkpoint_every, server_id=self.server_id)
-        self.check_not_served([n for n in self.states if n not in o.maps])  # restored maps
+        if o.nats is None:
+            self.check_not_served([n for n in self.states if n not in o.maps])  # restored
+        else:
+            self._start_replicas(restored)
         self._worker = threading.Thread(target=self._run, name="mcsm-worker", daemon=True)
         self._worker.start()
-        for name, st in self.states.items():
-            self._declare(name, st)
+        if o.nats is None:
+            for name, st in self.states.items():
+                self._declare(name, st)
+            return
+        for name, r in self.replicas.items():
+            if r.claim and not r.promoted.wait(300.0):
+                raise McsmError(f"map {name!r}: not serving within 300 s (its log: "
+                                f"{r.stopped or 'not caught up'})")
+
+    def _start_replicas(self, restored: set[str]) -> None:
+        """--nats: connect; claim every served map (its lease, its log) and follow every
+        --standby-of map; a claimed map whose log has inputs is built from the log."""
+        from mcsm.replication import NatsLink, Replica
+
+        o = self.opts
+        assert o.nats is not None
+        self.link = NatsLink(o.nats, self.server_id)
+        self.link.start()
+        for name in list(self.states):
+            r = Replica(self, self.link, name, wire.map_keys(name, o.prefix), claim=True,
+                        state=self.states[name])
+            r.start()
+            self.replicas[name] = r
+            st = r.st
+            del self.states[name]  # served once promoted (the loop applies the log first)
+            if st is None:
+                continue  # its log has inputs: the replica builds the map from them
+            if self.recorder is not None and name not in restored:
+                self.recorder.config(st, o.checkpoint_every, server_id=self.server_id)
+            r.recorded = st.seq if self.recorder is not None else -1
         for name in dict.fromkeys(o.standby_of):
-            self.followers[name] = Follower(self, name, wire.map_keys(name, o.prefix))
+            r = Replica(self, self.link, name, wire.map_keys(name, o.prefix), claim=False)
+            r.start()
+            self.replicas[name] = r
 
     def check_not_served(self, names: list[str], timeout_s: float = 2.0) -> None:
-        """Refuse maps another live server already serves (its liveliness token is seen):
-        two primaries of one map would fork it.
+        """A server without ``--nats``: refuse maps another live server already serves (its
+        liveliness token is seen), since two servers of one map would fork it. A replicated
+        map is refused by its lease instead, and only by it (:meth:`Replica.start`): the
+        token is the primary's address for clients, not a claim on the map.
 
         Raises
         ------
@@ -261,12 +292,10 @@ class Server:
                                     "serve it a second time (to follow it, start this "
                                     f"server with --standby-of {name})")
 
-    def _declare(self, name: str, st: MapState, recent: list[Entry] | None = None,
-                 sync: int = 0, epoch: int = 0) -> None:
+    def _declare(self, name: str, st: MapState) -> None:
         k = wire.map_keys(name, self.opts.prefix)
         self.keys[name] = k
         s = self.session
-        self.links[name] = PrimaryLink(self, st, k, recent, sync, epoch)
         # One queryable per map: one callback thread, one arrival order for all its keys.
         ents = [s.declare_queryable(k.all, lambda query: self._on_query(k, st, query),
                                     complete=False),
@@ -284,24 +313,26 @@ class Server:
                 return
             self._closed = True
         undeclare_all(self._entities)
-        for f in self.followers.values():
-            f.close()
-        for link in self.links.values():
-            link.close()
+        for r in self.replicas.values():
+            r.stop_loop()
         if self._worker is not None and self._worker.is_alive():
             self._queue.put(_STOP, force=True)
             self._worker.join(timeout=60.0)
             if self._worker.is_alive():
                 log.error("worker did not stop within 60 s")
+        for r in self.replicas.values():  # a primary's lease is released: a standby takes over
+            r.close(release=True)
+        if self.link is not None:
+            self.link.close()
         undeclare_all(list(self._publishers.values()))
         if self.recorder is not None and not self.recorder.closed:
             try:
                 if not self.failed.is_set():
                     for st in self.states.values():
                         self.recorder.checkpoint(st.name, st.seq, st.digest(), "close")
-                    for f in self.followers.values():
-                        if f.st is not None and not f.promoted:
-                            self.recorder.checkpoint(f.name, f.st.seq, f.st.digest(), "close")
+                    for r in self.replicas.values():
+                        if r.st is not None and r.role == "standby" and not r.dirty:
+                            self.recorder.checkpoint(r.name, r.st.seq, r.st.digest(), "close")
                 self.recorder.close()
                 log.info("recording closed: %s (%d inputs)", self.recorder.path,
                          self.recorder.n_inputs)
@@ -403,21 +434,22 @@ class Server:
             raise McsmError(f"failed on the worker: {task.error}") from task.error
         return task.result
 
-    def promote(self, f: Follower) -> bool:
-        """Take over ``f``'s map as its primary (on the worker); False if another server
-        serves it already."""
-        if f.st is None or f.stopped is not None or self._closed or not f.connected():
+    def promote(self, r: Replica) -> bool:
+        """On the worker: ``r``'s server holds the lease and applied the whole log: serve
+        the map (declare its keys) and acknowledge from now on."""
+        from mcsm.replication import TAKEOVER
+
+        st = r.st
+        if self._closed or st is None or r.dirty or r.stopped is not None or not r.lease.holding:
             return False
-        try:
-            self.check_not_served([f.name], timeout_s=0.5)
-        except McsmError as exc:
-            log.warning("not taking over: %s", exc)
-            return False
-        t_lost = f.lost_at
-        st = f.became_primary()
-        del self.followers[f.name]
+        r.role = "primary"
         self.states[st.name] = st
-        self._declare(st.name, st, list(f.recent), f.sync, f.epoch + 1)
+        self._declare(st.name, st)
+        first = r.claim and r.takeovers == 0
+        r.takeovers += 1
+        r.promoted.set()
+        if first:
+            return True
         digest = st.digest()
         if self.recorder is not None:
             try:
@@ -425,9 +457,9 @@ class Server:
             except (OSError, ValueError) as exc:
                 log.critical("recording failed: %s", exc)
                 self.failed.set()
-        took = time.monotonic() - t_lost if t_lost is not None else float("nan")
-        log.warning("map %r: took over as primary at seq %d (%.3f s after the primary's token "
-                    "went away)", st.name, st.seq, took)
+        took = time.monotonic() - r.lost_at if r.lost_at is not None else float("nan")
+        log.warning("map %r: took over as primary at seq %d (lease revision %d)", st.name,
+                    st.seq, r.term)
         ev = wire.Event(map=st.name, seq=st.seq, op=TAKEOVER, kind=TAKEOVER, frames=(),
                         component=None, time_ns=time.time_ns(), digest=digest,
                         extra={"server": self.server_id, "takeover_s": took})
@@ -438,45 +470,38 @@ class Server:
         return True
 
     @property
-    def closed(self) -> bool:
-        return self._closed
-
-    @property
     def recording_path(self) -> str:
         """The recording file written now (``-`` without one)."""
         return str(self.recorder.path) if self.recorder is not None else "-"
 
-    def step_down(self, name: str, why: str) -> None:
-        """Stop serving ``name`` (on the worker): another primary serves it now. Its state is
-        checkpointed and dropped; requests already queued for it get an error."""
-        st = self.states.get(name)
-        if st is None or name in self.deposed:
+    def demote(self, r: Replica, why: str) -> None:
+        """On the worker: stop serving ``r``'s map (the lease is lost, or the log refused an
+        input); the replica follows the log again (after a rebuild if its state is dirty)."""
+        name = r.name
+        if r.role != "primary":
             return
-        log.critical("map %r: stepping down: %s; restart this server with --standby-of %s",
-                     name, why, name)
+        r.role = "standby"
+        r.promoted.clear()
+        r.lost_at = time.monotonic()
+        log.warning("map %r: not serving it any more: %s", name, why)
         ents = self._map_entities.pop(name, [])
         undeclare_all(list(ents))
         self._entities[:] = [e for e in self._entities if all(e is not x for x in ents)]
-        link = self.links.pop(name, None)
-        if link is not None:
-            link.close()
         pub = self._publishers.pop(name, None)
         if pub is not None:
             undeclare_all([pub])
-        if self.recorder is not None and not self.failed.is_set():
+        st = self.states.pop(name, None)
+        if st is not None and not r.dirty and self.recorder is not None \
+                and not self.failed.is_set():
             try:
                 self.recorder.checkpoint(name, st.seq, st.digest(), "deposed")
             except (OSError, ValueError) as exc:
                 log.critical("recording failed: %s", exc)
                 self.failed.set()
-        del self.states[name]
-        self.deposed[name] = why
 
     @property
-    def serving_nothing(self) -> bool:
-        """True once every map this server served was taken by another primary and it
-        follows none: ``mcsm serve`` then exits (code 7)."""
-        return bool(self.deposed) and not self.states and not self.followers
+    def closed(self) -> bool:
+        return self._closed
 
     def _reply(self, item: _Item, payload: bytes) -> None:
         try:
@@ -493,9 +518,9 @@ class Server:
 
     def _handle(self, item: _Item) -> None:
         st = item.state
-        if st.name in self.deposed:
-            self._reply_err(item, McsmError(f"map {st.name!r} is served by another server "
-                                            "now; retry (the client finds it)"))
+        if self.states.get(st.name) is not st:
+            self._reply_err(item, NotReplicated(st.name, "this server does not serve it now "
+                                                "(another server holds its lease)"))
             return
         if self.failed.is_set():
             self._reply_err(item, McsmError("server stopped: recording failed"))
@@ -522,18 +547,16 @@ class Server:
         except McsmError as exc:  # RequestIdReused: an id sent again with another request
             self._reject(st, item.query, exc, req.request_id, item.op)
             return
-        link = self.links.get(st.name)
+        rep = self.replicas.get(st.name)
+        if rep is not None and not rep.may_ack():
+            self._reject(st, item.query, NotReplicated(
+                st.name, "this server does not hold the map's lease now"), req.request_id,
+                item.op)
+            return
         if dup is not None:
             log.info("map %r: request %s already applied as seq %d; resending its ack",
                      st.name, req.request_id, dup.seq)
-            if link is not None and not link.ensure(dup.seq):
-                self._reply_err(item, link.refusal("the standbys do not confirm it yet"))
-                return
             self._reply(item, wire.encode_ack(replace(dup, server=self.server_id)))
-            return
-        if link is not None and not link.can_accept():
-            self._reject(st, item.query, link.refusal("too few standbys are alive"),
-                         req.request_id, item.op)
             return
         try:
             operation.check_namespace_map(st, req, item.namespace, item.key)
@@ -544,6 +567,17 @@ class Server:
             return
         ack = replace(ack, server=self.server_id)
         digest = st.digest() if ack.seq % self.opts.checkpoint_every == 0 else None
+        if rep is not None:
+            from mcsm.replication import Entry, Refused
+
+            try:
+                rep.append(Entry(ack.seq, item.op, item.recv_ns, item.sender, req.request_id,
+                                 item.payload, digest))
+            except Refused as exc:
+                log.warning("map %r: the log refused seq %d: %s", st.name, ack.seq, exc)
+                self.demote(rep, f"the log refused seq {ack.seq}: {exc}")
+                self._reply_err(item, NotReplicated(st.name, f"the log did not take it ({exc})"))
+                return
         try:
             if self.recorder is not None:
                 self.recorder.input(item.op, st.name, ack.seq, item.recv_ns, item.sender,
@@ -560,13 +594,16 @@ class Server:
             self.failed.set()
             self._reply_err(item, McsmError(f"recording failed: {exc}"))
             return
-        replicated = link is None or link.push(Entry(
-            ack.seq, item.op, item.recv_ns, item.sender, req.request_id, item.payload, digest))
-        if replicated:
+        if rep is not None:
+            if self.recorder is not None:
+                rep.recorded = ack.seq
+            if rep.disk_snapshot_every and ack.seq % rep.disk_snapshot_every == 0:
+                rep.snapshot_soon()
+        if rep is None or rep.may_ack():
             self._reply(item, wire.encode_ack(ack))
-        else:  # applied and recorded; a retry with the same id is acknowledged once confirmed
-            assert link is not None
-            self._reply_err(item, link.refusal("the standbys did not confirm it in time"))
+        else:  # in the log and recorded; the retry is acknowledged by the lease's holder
+            self._reply_err(item, NotReplicated(st.name, "the lease may have expired while "
+                                                "the log stored it"))
         ev = ops.event(item.op, st, req, ack, time_ns=time.time_ns(), digest=digest)
         try:
             self._publishers[st.name].put(wire.encode_event(ev))
@@ -576,6 +613,7 @@ class Server:
     def info(self, st: MapState) -> wire.MapInfo:
         """The info reply of one map (call from the worker, or when nothing else runs)."""
         m = st.map
+        rep = self.replicas.get(st.name)
         mem = m.memory()
         with self._reject_lock:
             rejected, by_error = st.rejected, dict(st.rejected_by_error)
@@ -587,10 +625,21 @@ class Server:
             verdicts=dict(st.verdicts),
             recording=str(self.recorder.path) if self.recorder is not None else "",
             queue_length=self._queue.qsize(),
-            standbys=self.links[st.name].standbys() if st.name in self.links else {},
-            sync_standbys=self.links[st.name].sync if st.name in self.links else 0,
-            epoch=self.links[st.name].epoch if st.name in self.links else 0,
+            standbys=dict(rep.standbys) if rep is not None else {},
+            replicas=self.link.opts.replicas if self.link is not None else 0,
+            epoch=rep.term if rep is not None else 0,
             device=m.device, device_bytes=mem["bytes"], device_free_bytes=mem.get("free", 0))
+
+
+def undeclare_all(entities: list[Any]) -> None:
+    """Undeclare Zenoh entities (queryables, tokens, subscribers, publishers) and empty the
+    list; an entity the session already dropped is only logged."""
+    for ent in entities:
+        try:
+            ent.undeclare()
+        except zenoh.ZError as exc:
+            log.debug("undeclare: %s", exc)
+    entities.clear()
 
 
 def restore_summary(rep: Any) -> str:
@@ -627,4 +676,4 @@ def _source(query: zenoh.Query) -> str:
     return str(si.source_id) if si is not None else ""
 
 
-__all__ = ["Server", "ServerOptions", "decode_input", "new_map"]
+__all__ = ["Server", "ServerOptions", "decode_input", "new_map", "undeclare_all"]

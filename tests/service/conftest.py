@@ -6,6 +6,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from mcsm.natsrun import NatsCluster
 
 from tests.service.daemon_util import Daemon
 
@@ -20,3 +21,13 @@ def daemons(tmp_path: Path) -> Iterator[list[Daemon]]:
             d.proc.kill()
             d.proc.wait(timeout=10)
 
+
+
+@pytest.fixture
+def nats(tmp_path: Path) -> Iterator[NatsCluster]:
+    """A three-node NATS JetStream cluster on loopback (the fleet's log), stopped after."""
+    c = NatsCluster(tmp_path / "nats").start()
+    try:
+        yield c
+    finally:
+        c.stop()

@@ -1,5 +1,6 @@
 """Relinearisation over the wire: the ``relinearize`` operation and a server's automatic
-policy, through retract, replay, ``--restore`` from a recorded snapshot and a hot standby.
+policy, through retract, replay, ``--restore`` from a recorded snapshot and a hot standby on
+the map's NATS log (with its takeover after the primary's SIGKILL).
 
 The map's relinearisation is deterministic kernel code driven by the recorded inputs, so each
 of these paths recomputes it: the digests are compared with an in-process ``StochasticMap``
@@ -16,6 +17,7 @@ import numpy as np
 import pytest
 from mcsm import StochasticMap
 from mcsm.log.replay import replay
+from mcsm.natsrun import NatsCluster
 from mcsm_client.cli import main as client_main
 from mcsm_client.client import MapClient
 
@@ -143,34 +145,44 @@ def test_retract_replay_and_restore_through_relinearisations(
     assert replay(d2.record).identical
 
 
-def test_a_standby_follows_relinearisations(tmp_path: Path, daemons: list[Daemon]) -> None:
+def test_a_standby_follows_relinearisations(tmp_path: Path, daemons: list[Daemon],
+                                            nats: NatsCluster) -> None:
     """Whatever applies inputs through ``MapState.apply`` recomputes a relinearisation: a
-    standby that joins late (catching up from the primary's log) and then follows live holds
-    the primary's digest."""
+    standby that joins late (catching up from the map's NATS log) and then follows live holds
+    the primary's digest; after the primary's SIGKILL it takes over with that digest and
+    relinearises on request itself."""
     ops = _inputs(np.random.default_rng(20261211))
     router, ep = start_router(tmp_path)
+    repl = ("--samples", str(N), "--connect", ep, "--nats", ",".join(nats.urls),
+            "--relinearize-nis", "0.95", "--relinearize-every", "6", "--relinearize-gap", "3",
+            "--relinearize-regate", "1")
     try:
-        p = start_daemon(tmp_path, "--samples", str(N), "--map", "m", "--connect", ep,
-                         "--relinearize-nis", "0.95", "--relinearize-every", "6",
-                         "--relinearize-gap", "3", "--relinearize-regate", "1", name="p",
-                         endpoint="-")
+        p = start_daemon(tmp_path, *repl, "--map", "m", name="p", endpoint="-")
         daemons.append(p)
         with MapClient(map="m", connect=ep, timeout_s=30.0) as c:
             half = len(ops) // 2
             for op in ops[:half]:
                 _send(c, op)
-            s = start_daemon(tmp_path, "--samples", str(N), "--standby-of", "m", "--connect",
-                             ep, name="s", endpoint="-")
+            s = start_daemon(tmp_path, *repl, "--standby-of", "m", name="s", endpoint="-")
             daemons.append(s)
-            wait_for("the standby joins", lambda: len(c.info().standbys) == 1)
-            for op in ops[half:]:
+            for op in ops[half:]:  # both relinearize requests come after the standby joined
                 _send(c, op)
             info = c.info()
+            assert info.digest == _fresh(ops).state_digest()
             wait_for("the standby holds the head",
-                     lambda: min(c.info().standbys.values()) >= info.seq)
-        assert info.digest == _fresh(ops).state_digest()
+                     lambda: list(c.info().standbys.values()) == [info.seq])
+            p.proc.send_signal(signal.SIGKILL)
+            p.proc.wait(timeout=10)
+            wait_for("the standby serves", lambda: c.info().server_id != info.server_id,
+                     30.0)
+            after = c.info()
+            assert after.seq == info.seq and after.digest == info.digest
+            last: Op = ("rl-after", "relinearize", "", "", None, False)
+            _send(c, last)
+            assert c.info().digest == _fresh([*ops, last]).state_digest()
         assert s.stop() == 0
     finally:
         router.stop(signal.SIGKILL)
     rep = replay(s.record)
-    assert rep.divergence is None and rep.final_digests()["m"] == info.digest
+    assert rep.divergence is None
+    assert rep.final_digests()["m"] == _fresh([*ops, last]).state_digest()

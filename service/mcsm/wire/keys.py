@@ -122,21 +122,8 @@ class Keys:
         ``namespace`` if given (``.../update/robot1``)."""
         return self._k(f"{leaf}/{check_namespace(namespace)}" if namespace else leaf)
 
-    # Replication keys (hot standbys, :mod:`mcsm.replication`). ``@`` makes a chunk verbatim:
-    # the map's ``**`` queryable never matches these keys, so clients' requests and the
-    # servers' replication traffic never meet (and an access-control list grants them apart).
-    def standby(self, server_id: str) -> str:
-        """A standby's queryable (the primary pushes inputs to it) and liveliness token."""
-        return self._k(f"@standby/{server_id}")
-
-    @property
-    def standby_any(self) -> str:
-        return self._k("@standby/*")
-
-    @property
-    def log(self) -> str:
-        """The primary's catch-up queryable: a standby asks for the inputs after its seq."""
-        return self._k("@log")
+    # No replication keys: standbys follow the map's log in NATS JetStream
+    # (:mod:`mcsm.replication`), never through Zenoh.
 
     def route(self, key: str) -> tuple[str, str]:
         """``(leaf, namespace)`` of a concrete request key of this map (:func:`route`).

@@ -277,11 +277,13 @@ class MapInfo:
     """``primary`` (a standby has no map queryable: only the primary answers info)."""
     standbys: dict[str, int] = field(default_factory=dict, metadata=wire_field(
         check_counts, pack=dict, required=False))
-    """Each live standby's server id and the last seq it confirmed (its lag: ``seq`` minus
-    that); ``sync_standbys`` of them must confirm an update before it is acknowledged."""
-    sync_standbys: int = field(default=0, metadata=wire_field(check_count, required=False))
+    """Each standby's server id and the last seq the log delivered to it (its lag: ``seq``
+    minus that), from the log's consumers (``mcsm serve --nats``)."""
+    replicas: int = field(default=0, metadata=wire_field(check_count, required=False))
+    """Copies of the map's log (JetStream R; 0: not replicated)."""
     epoch: int = field(default=0, metadata=wire_field(check_count, required=False))
-    """Takeovers behind this primary (0: started with ``--map``; docs/fleet.md)."""
+    """The lease revision this primary took the map with: grows with every takeover (0: not
+    replicated; docs/fleet.md)."""
     device: str = field(default="cpu", metadata=wire_field(check_text(64), required=False))
     """Where the map's edges live: ``cpu`` or ``cuda:K`` (``mcsm serve --device``)."""
     device_bytes: int = field(default=0, metadata=wire_field(check_count, required=False))
