@@ -237,7 +237,7 @@ def main() -> None:
                     help="then S seconds of two clients streaming with no fault, counting "
                          "the lease's false alarms (0: skip)")
     args = ap.parse_args()
-    from mcsm.natsrun import NatsCluster
+    from mcsm.serve.natsrun import NatsCluster
 
     LEASE[:] = ["--lease-ttl", f"{args.lease_ttl:g}"]
     with tempfile.TemporaryDirectory() as d:

@@ -54,7 +54,7 @@ def test_readme_states_the_gate_default() -> None:
     from mcsm import StochasticMap
     from mcsm.cli import build_parser
     from mcsm.core.smap import DEFAULT_GATE
-    from mcsm.server import ServerOptions, new_map
+    from mcsm.serve.server import ServerOptions, new_map
 
     text = " ".join(README.read_text().split())
     m = re.search(r"Loop closures are gated at ([0-9.]+) by default", text)

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 from mcsm import StochasticMap
-from mcsm.connect import add_connection_args, client_kwargs
+from mcsm.serve.connect import add_connection_args, client_kwargs
 from mcsm_client.client import MapClient
 from mcsm_client.players import MapTarget
 from mcsm_client.sampling import correlated_with, sample_planar

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 from mcsm import StochasticMap
-from mcsm.connect import add_connection_args, client_kwargs
+from mcsm.serve.connect import add_connection_args, client_kwargs
 from mcsm_client.client import MapClient
 from mcsm_client.multirobot import MultiRobotConfig, run_multirobot
 

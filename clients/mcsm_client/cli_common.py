@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from mcsm.connect import add_connection_args, client_kwargs
+from mcsm.serve.connect import add_connection_args, client_kwargs
 
 EXIT_OK, EXIT_REFUSED, EXIT_USAGE, EXIT_TIMEOUT, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
 EXIT_GATE_REJECTED = 4  # update: recorded and acknowledged, but the gate refused it

@@ -53,7 +53,7 @@ import numpy as np
 import numpy.typing as npt
 import zenoh
 from mcsm import wire
-from mcsm.connect import ZenohConfigLike, client_config
+from mcsm.serve.connect import ZenohConfigLike, client_config
 from mcsm.errors import (
     BadMessage,
     LimitExceeded,
@@ -92,7 +92,7 @@ class MapClient:
     map : str
         Map name (``<prefix>/<map>/...`` keys).
     connect : str, optional
-        Server endpoint. ``None`` means the default (``mcsm.connect.DEFAULT_ENDPOINT``) unless
+        Server endpoint. ``None`` means the default (``mcsm.serve.connect.DEFAULT_ENDPOINT``) unless
         ``zenoh_config`` (or ``ZENOH_CONFIG``) names endpoints; when both are given,
         ``connect`` wins.
     zenoh_config : path, dict or zenoh.Config, optional

@@ -24,7 +24,7 @@ from mcsm.errors import McsmError
 
 def add_parser(sub: Any) -> None:
     """Add ``view`` to ``mcsm``'s subparsers (the ``mcsm.commands`` entry point)."""
-    from mcsm.connect import add_connection_args
+    from mcsm.serve.connect import add_connection_args
 
     v = sub.add_parser("view", help="serve a live map to Foxglove or Lichtblick (WebSocket)",
                        description="Follow a running mcsm serve over Zenoh and publish its "

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import zenoh
 from mcsm import StochasticMap, wire
-from mcsm.connect import (
+from mcsm.serve.connect import (
     add_connection_args,
     check_endpoint,
     client_config,
@@ -39,7 +39,7 @@ from mcsm.errors import (
     UnknownFrame,
 )
 from mcsm.log.replay import replay
-from mcsm.server import Server, ServerOptions
+from mcsm.serve.server import Server, ServerOptions
 from mcsm_client.client import MIN_ATTEMPT_S, MapClient
 from mcsm_client.process import loopback_endpoint as free_endpoint
 
@@ -419,7 +419,7 @@ def test_sim_play_multirobot_refuse_frames_that_exist(
 
 
 def test_server_flags_before_or_after_serve() -> None:
-    from mcsm.connect import flags_after_command
+    from mcsm.serve.connect import flags_after_command
 
     assert flags_after_command(["--listen", "tcp/127.0.0.1:1", "serve", "--samples", "5"],
                                "serve") == ["serve", "--listen", "tcp/127.0.0.1:1",

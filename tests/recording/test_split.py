@@ -22,7 +22,7 @@ from mcsm import StochasticMap, wire
 from mcsm.cli import EXIT_USAGE
 from mcsm.cli import main as mcsm_main
 from mcsm.errors import InvalidOperation
-from mcsm.lanes import Full, Lanes
+from mcsm.serve.lanes import Full, Lanes
 from mcsm.log.chunkwriter import ChunkPerInputWriter
 from mcsm.log.reader import RecordingReader
 from mcsm.log.recset import resolve

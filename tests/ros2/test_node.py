@@ -23,7 +23,7 @@ PEER = Path(__file__).with_name("ros_peer.py")
 
 
 def test_the_server_and_mcsm_help_import_no_ros() -> None:
-    code = ("import sys, mcsm.server, mcsm.cli, mcsm.viz.rosbag\n"
+    code = ("import sys, mcsm.serve.server, mcsm.cli, mcsm.viz.rosbag\n"
             "mcsm.cli.build_parser()\n"
             "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('rclpy', 'rosbags',"
             " 'nav_msgs', 'geometry_msgs', 'tf2_msgs', 'mcsm_client'))\n"

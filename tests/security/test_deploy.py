@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 import zenoh
 from mcsm import wire
-from mcsm.connect import client_config
+from mcsm.serve.connect import client_config
 from mcsm.errors import Forbidden, McsmError, NoPermittedServer
 from mcsm_client.client import MapClient
 

@@ -6,7 +6,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from mcsm.natsrun import NatsCluster
+from mcsm.serve.natsrun import NatsCluster
 
 from tests.service.daemon_util import Daemon
 

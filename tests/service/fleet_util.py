@@ -18,7 +18,7 @@ from pathlib import Path
 from mcsm.log.reader import RecordingReader
 from mcsm.log.replay import replay
 from mcsm.log.topics import TOPIC_CHECKPOINT, TOPIC_CONFIG, TOPIC_OPS
-from mcsm.natsrun import NatsCluster
+from mcsm.serve.natsrun import NatsCluster
 
 from tests.service.daemon_util import Daemon, start_daemon
 

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from mcsm.natsrun import NatsCluster
+from mcsm.serve.natsrun import NatsCluster
 from mcsm_client.client import MapClient
 
 from tests.service.daemon_util import Daemon, noisy_at, start_daemon, start_router, wait_for

@@ -1,5 +1,5 @@
 """What the replicated log relies on, checked on a real three-node JetStream cluster
-(``mcsm.replication``): the message id is checked before the expected last sequence, so a
+(``mcsm.serve.replication``): the message id is checked before the expected last sequence, so a
 retried append whose first try was stored answers ``duplicate`` with that seq (even though
 the expected sequence is now stale), while another message with a stale expected sequence
 is refused (code 10071), and one that expects an impossible sequence is refused naming the
@@ -13,7 +13,7 @@ import asyncio
 import time
 from pathlib import Path
 
-from mcsm.natsrun import NatsCluster
+from mcsm.serve.natsrun import NatsCluster
 
 
 def test_dedup_before_expected_sequence_and_lease_expiry(tmp_path: Path) -> None:

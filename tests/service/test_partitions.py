@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
-from mcsm.natsrun import NatsCluster
+from mcsm.serve.natsrun import NatsCluster
 from mcsm_client.client import MapClient
 from mcsm_client.process import McsmProcess
 

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from mcsm import StochasticMap
 from mcsm.log.replay import replay
-from mcsm.natsrun import NatsCluster
+from mcsm.serve.natsrun import NatsCluster
 from mcsm_client.cli import main as client_main
 from mcsm_client.client import MapClient
 

@@ -23,7 +23,7 @@ import pytest
 from mcsm.log.reader import RecordingReader
 from mcsm.log.replay import replay
 from mcsm.log.topics import TOPIC_CHECKPOINT
-from mcsm.natsrun import NatsCluster
+from mcsm.serve.natsrun import NatsCluster
 from mcsm_client.cli import main as client_main
 from mcsm_client.client import MapClient
 

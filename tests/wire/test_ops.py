@@ -12,7 +12,7 @@ import pytest
 from mcsm import wire
 from mcsm.errors import BadMessage, Forbidden, McsmError
 from mcsm.map import ops
-from mcsm.replication import TAKEOVER
+from mcsm.serve.replication import TAKEOVER
 
 from tests.wire_cases import good_samples
 
@@ -106,7 +106,7 @@ def test_namespaced_keys_are_the_tables() -> None:
 def test_schemas_and_keys_md_name_the_tables_operations() -> None:
     recorded = [o.name for o in ops.RECORDED]
     assert _schema("ack.json")["properties"]["op"]["enum"] == recorded
-    # plus the one event that is no input: a standby taking over (mcsm.replication)
+    # plus the one event that is no input: a standby taking over (mcsm.serve.replication)
     assert _schema("event.json")["properties"]["op"]["enum"] == [*recorded, TAKEOVER]
     keys_md = (Path(__file__).resolve().parents[2] / "schemas" / "KEYS.md").read_text()
     for op in ops.OPS.values():

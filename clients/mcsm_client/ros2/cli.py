@@ -37,7 +37,7 @@ def _epilog() -> str:
 
 def add_parser(sub: Any) -> None:
     """Add ``ros2`` to ``mcsm``'s subparsers (the ``mcsm.commands`` entry point)."""
-    from mcsm.connect import add_connection_args
+    from mcsm.serve.connect import add_connection_args
 
     p = sub.add_parser("ros2", help="a ROS 2 node: ROS messages into the map, TF, paths, "
                        "markers and diagnostics out (ros extra)",
@@ -67,8 +67,8 @@ class _InProcessServer:
         import time
 
         import zenoh
-        from mcsm.connect import server_config
-        from mcsm.server import Server, ServerOptions
+        from mcsm.serve.connect import server_config
+        from mcsm.serve.server import Server, ServerOptions
 
         from mcsm_client.process import loopback_endpoint
 
@@ -108,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
     except ImportError as exc:
         print(f"{prog}: needs the ros extra (pip install 'mcsm[ros]'): {exc}", file=sys.stderr)
         return 2
-    from mcsm.connect import client_kwargs
+    from mcsm.serve.connect import client_kwargs
 
     from mcsm_client.client import MapClient
     from mcsm_client.ros2.node import RosNode, declare_parameters

@@ -123,7 +123,7 @@ class Keys:
         return self._k(f"{leaf}/{check_namespace(namespace)}" if namespace else leaf)
 
     # No replication keys: standbys follow the map's log in NATS JetStream
-    # (:mod:`mcsm.replication`), never through Zenoh.
+    # (:mod:`mcsm.serve.replication`), never through Zenoh.
 
     def route(self, key: str) -> tuple[str, str]:
         """``(leaf, namespace)`` of a concrete request key of this map (:func:`route`).

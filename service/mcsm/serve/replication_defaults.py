@@ -1,6 +1,6 @@
 """The defaults of ``mcsm serve``'s replication flags (``--replicas``, ``--lease-ttl``,
 ``--log-max-bytes``, ``--log-max-age``), importable without nats-py: ``mcsm serve --help`` and a
-server without ``--nats`` import this module, never :mod:`mcsm.replication`'s NATS client."""
+server without ``--nats`` import this module, never :mod:`mcsm.serve.replication`'s NATS client."""
 
 DEFAULT_REPLICAS = 3
 """Copies of each map's log, lease and snapshots (JetStream R; a quorum is 2 of 3)."""

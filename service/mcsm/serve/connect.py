@@ -1,4 +1,5 @@
-"""Connection flags and Zenoh configs, shared by ``mcsm``, ``mcsm-client`` and every example.
+"""Connection flags and Zenoh configs, shared by ``mcsm``, ``mcsm-client`` and every example;
+and two helpers on Zenoh entities (:func:`undeclare_all`, :func:`query_source`).
 
 Defaults work on one machine with no router: the server is an embedded Zenoh *peer* listening
 on ``tcp/127.0.0.1:7457`` (not 7447, zenohd's own port, so a Zenoh router and an mcsm server
@@ -29,6 +30,7 @@ from __future__ import annotations
 import argparse
 import ipaddress
 import json
+import logging
 import os
 import re
 from collections.abc import Mapping
@@ -39,6 +41,8 @@ import zenoh
 
 from mcsm import wire
 from mcsm.errors import BadMessage
+
+log = logging.getLogger(__name__)
 
 DEFAULT_PORT = 7457
 DEFAULT_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_PORT}"
@@ -316,3 +320,23 @@ def security_warning(c: zenoh.Config) -> str | None:
         return (f"listening on {where} without access control: every authenticated "
                 "identity can write every map (docs/deploy.md)")
     return None
+
+
+def undeclare_all(entities: list[Any]) -> None:
+    """Undeclare Zenoh entities (queryables, tokens, subscribers, publishers) and empty the
+    list; an entity the session already dropped is only logged."""
+    for ent in entities:
+        try:
+            ent.undeclare()
+        except zenoh.ZError as exc:
+            log.debug("undeclare: %s", exc)
+    entities.clear()
+
+
+def query_source(query: zenoh.Query) -> str:
+    """The Zenoh id of a query's sender, or '' where the query carries none."""
+    try:
+        si = query.source_info
+    except (AttributeError, zenoh.ZError):
+        return ""
+    return str(si.source_id) if si is not None else ""

@@ -46,9 +46,9 @@ publish once a quorum of them stored it). For each replicated map:
   from the latest snapshot in the object store ``MCSM_SNAP`` (written by the primary every
   ``--disk-snapshot-every`` inputs, with the remembered request ids) and the stream after it.
 
-The modules: :mod:`mcsm.replication_link` (the connection, the options, the buckets, NATS
-names), :mod:`mcsm.replication_log` (the entry codec; one map's stream, config, snapshot and
-consumer), :mod:`mcsm.replication_lease` (the lease); this module holds the replica: one map's
+The modules: :mod:`mcsm.serve.replication_link` (the connection, the options, the buckets, NATS
+names), :mod:`mcsm.serve.replication_log` (the entry codec; one map's stream, config, snapshot and
+consumer), :mod:`mcsm.serve.replication_lease` (the lease); this module holds the replica: one map's
 roles (standby, primary), its loop on the NATS thread and its work on the server's worker.
 
 Nothing of this is imported by a server without ``--nats``.
@@ -61,7 +61,7 @@ import logging
 import threading
 import time
 from collections.abc import Awaitable, Callable
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import Any, TypeVar
 
 from mcsm import wire
 from mcsm.core.smap import StochasticMap
@@ -70,18 +70,16 @@ from mcsm.log.topics import decode_input
 from mcsm.map.carry import decode_snapshot, encode_snapshot
 from mcsm.map.deferral import DeferOptions, DeferState
 from mcsm.map.state import MapState
-from mcsm.replication_defaults import (
+from mcsm.serve.host import ReplicaHost
+from mcsm.serve.replication_defaults import (
     DEFAULT_LEASE_TTL_S,
     DEFAULT_LOG_MAX_AGE_S,
     DEFAULT_LOG_MAX_BYTES,
     DEFAULT_REPLICAS,
 )
-from mcsm.replication_lease import Lease
-from mcsm.replication_link import NatsLink, NatsOptions, retry, stream_name
-from mcsm.replication_log import Entry, MapLog, Refused, pack_entry, pack_obj
-
-if TYPE_CHECKING:
-    from mcsm.server import Server
+from mcsm.serve.replication_lease import Lease
+from mcsm.serve.replication_link import NatsLink, NatsOptions, retry, stream_name
+from mcsm.serve.replication_log import Entry, MapLog, Refused, pack_entry, pack_obj
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -98,7 +96,7 @@ class Replica:
     the lease and the stream consumer. The map's state changes on the server's worker only;
     the NATS loop fetches, renews and hands work to the worker."""
 
-    def __init__(self, server: Server, link: NatsLink, name: str, keys: wire.Keys,
+    def __init__(self, server: ReplicaHost, link: NatsLink, name: str, keys: wire.Keys,
                  claim: bool, state: MapState | None = None) -> None:
         self.server, self.link, self.name, self.keys = server, link, name, keys
         self.claim = claim  # --map: take the lease at start (refuse if another holds it)

@@ -1,4 +1,4 @@
-"""A replicated map's lease (:mod:`mcsm.replication`): which server may append to the map's
+"""A replicated map's lease (:mod:`mcsm.serve.replication`): which server may append to the map's
 log and acknowledge its inputs.
 
 One key per map in the KV bucket ``MCSM_LEASE``, whose entries expire after the lease TTL

