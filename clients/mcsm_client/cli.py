@@ -33,8 +33,8 @@ import os
 import sys
 from pathlib import Path
 
-from mcsm.serve.connect import check_endpoint, fill_connection_defaults
 from mcsm.errors import McsmError, NoPermittedServer, NoServer, Timeout, Unreachable
+from mcsm.serve.connect import check_endpoint, fill_connection_defaults
 
 from mcsm_client.cli_common import (  # re-exported: the exit codes, UsageError, _ack_text
     EXIT_GATE_REJECTED,

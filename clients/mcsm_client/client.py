@@ -53,7 +53,6 @@ import numpy as np
 import numpy.typing as npt
 import zenoh
 from mcsm import wire
-from mcsm.serve.connect import ZenohConfigLike, client_config
 from mcsm.errors import (
     BadMessage,
     LimitExceeded,
@@ -64,6 +63,7 @@ from mcsm.errors import (
     Unreachable,
 )
 from mcsm.map import ops
+from mcsm.serve.connect import ZenohConfigLike, client_config
 
 log = logging.getLogger(__name__)
 

@@ -15,15 +15,6 @@ import numpy as np
 import pytest
 import zenoh
 from mcsm import StochasticMap, wire
-from mcsm.serve.connect import (
-    add_connection_args,
-    check_endpoint,
-    client_config,
-    client_kwargs,
-    listen_endpoints,
-    security_warning,
-    server_config,
-)
 from mcsm.core.quat import qexp
 from mcsm.errors import (
     BadMessage,
@@ -39,6 +30,15 @@ from mcsm.errors import (
     UnknownFrame,
 )
 from mcsm.log.replay import replay
+from mcsm.serve.connect import (
+    add_connection_args,
+    check_endpoint,
+    client_config,
+    client_kwargs,
+    listen_endpoints,
+    security_warning,
+    server_config,
+)
 from mcsm.serve.server import Server, ServerOptions
 from mcsm_client.client import MIN_ATTEMPT_S, MapClient
 from mcsm_client.process import loopback_endpoint as free_endpoint

@@ -22,7 +22,6 @@ from mcsm import StochasticMap, wire
 from mcsm.cli import EXIT_USAGE
 from mcsm.cli import main as mcsm_main
 from mcsm.errors import InvalidOperation
-from mcsm.serve.lanes import Full, Lanes
 from mcsm.log.chunkwriter import ChunkPerInputWriter
 from mcsm.log.reader import RecordingReader
 from mcsm.log.recset import resolve
@@ -32,6 +31,7 @@ from mcsm.log.writer import Recorder
 from mcsm.map import ops
 from mcsm.map.history import nbytes
 from mcsm.map.state import MapState
+from mcsm.serve.lanes import Full, Lanes
 
 from tests.recording.test_recording import at
 

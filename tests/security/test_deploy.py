@@ -24,8 +24,8 @@ import numpy as np
 import pytest
 import zenoh
 from mcsm import wire
-from mcsm.serve.connect import client_config
 from mcsm.errors import Forbidden, McsmError, NoPermittedServer
+from mcsm.serve.connect import client_config
 from mcsm_client.client import MapClient
 
 from tests.service.daemon_util import Daemon, free_port, noisy_at, start_daemon

@@ -25,10 +25,10 @@ import numpy as np
 import pytest
 import zenoh
 from mcsm import wire
-from mcsm.serve.connect import client_config
 from mcsm.log.reader import RecordingReader
 from mcsm.log.replay import replay
 from mcsm.log.topics import TOPIC_OPS
+from mcsm.serve.connect import client_config
 from mcsm.serve.natsrun import NatsCluster
 from mcsm_client.client import MapClient
 from mcsm_client.process import McsmProcess
