@@ -156,6 +156,9 @@ def test_secured_fleet_replicates_and_a_standby_takes_over(secrets_dir: Path, tm
             acks += [robot.update(f"robot1/p{i}", f"robot1/p{i + 1}", xs[i], request_id=f"r{i}")
                      for i in range(10, 20)]
             again = robot.update("robot1/p0", "robot1/p1", xs[0], request_id="r0")
+            # the new standby's recording is compared below: let it apply the whole log first
+            wait_for("the new standby holds all 20",
+                     lambda: list(robot.info().standbys.values()) == [20])
             after = robot.info()
         assert again.duplicate and again.seq == 1
         assert [a.seq for a in acks] == list(range(1, 21))
