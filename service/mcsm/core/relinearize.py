@@ -85,7 +85,8 @@ class Policy:
         every later relinearisation of it admits the marked ones whose chi-square at its
         solution is within :data:`TRIM_QUANTILE` (the report's ``readmitted``), and once the
         last :data:`REGATE_WINDOW` gated closures all passed (and ``gap`` inputs went by) one
-        more relinearisation checks the marked ones left, then forgets them (an experiment,
+        more solve checks the marked ones left (the map changes only if it admits one), then
+        forgets them (an experiment,
         off by default: docs/evaluation.md, "Re-admitting refused closures")
     """
 
@@ -293,9 +294,12 @@ def why_not(smap: Relinearizable, cid: int) -> str:
     return ""
 
 
-def relinearize_component(smap: Relinearizable, cid: int) -> ComponentRelin:
+def relinearize_component(smap: Relinearizable, cid: int, *, readmit_only: bool = False
+                          ) -> ComponentRelin:
     """Solve component ``cid`` over its whole history and redraw its edges (see the module
-    docstring). A skipped component changes nothing; a failure raises and changes nothing."""
+    docstring). A skipped component changes nothing; a failure raises and changes nothing.
+    ``readmit_only``: only if the solve admits a refused closure (:attr:`Policy.readmit`);
+    else the component is left as it was (skipped, "nothing to re-admit")."""
     c = smap._comps[cid]
     reason = why_not(smap, cid)
     if reason:
@@ -324,6 +328,9 @@ def relinearize_component(smap: Relinearizable, cid: int) -> ComponentRelin:
                 prob = _problem(smap, h, cid, ids, fmask, priors, kept)
                 prob.x[:] = x  # from the solution without them
                 sol = relin.solve(prob, max_iter=MAX_ITERATIONS, tol=TOLERANCE)
+        if readmit_only and not readmitted:
+            sol.close()
+            return ComponentRelin(c.root, skipped="nothing to re-admit")
         with sol:
             slot = np.full(len(ids), -1, dtype=np.int64)
             alive = np.flatnonzero(kept)
@@ -410,12 +417,13 @@ def _admit(h: FactorHistory, rows: npt.NDArray[np.int64]) -> Callable[[], None]:
 def relinearize(smap: Relinearizable, cids: list[int], trigger: str) -> RelinReport:
     """Relinearise components ``cids`` in order; the report. A component whose solve fails is
     left as it was and reported as skipped (never raised: an automatic relinearisation runs
-    after its update was applied)."""
+    after its update was applied). Trigger ``readmit`` changes a component only if it admits
+    a refused closure."""
     t0 = time.perf_counter()
     comps = []
     for cid in cids:
         try:
-            comps.append(relinearize_component(smap, cid))
+            comps.append(relinearize_component(smap, cid, readmit_only=trigger == "readmit"))
         except McsmError as exc:
             comps.append(ComponentRelin(smap._comps[cid].root,
                                         skipped=f"failed: {type(exc).__name__}: {exc}"))

@@ -434,7 +434,8 @@ class StochasticMap(Forest):
                 left = np.ones(h.pending.n, dtype=bool)
                 left[h.pending_of(cid)] = False
                 h.pending.keep(left)
-                return report
+                # a solve that admitted nothing left the map as it was: nothing to report
+                return report if any(c.readmitted for c in report.components) else None
         return None
 
     def _can_regate(self, cid: int, trusted: bool) -> bool:
