@@ -81,6 +81,8 @@ CONFIGS: list[dict[str, Any]] = [
      "options": {"relinearize": _recommended()}},
     {"name": "mcsm defaults + relinearize() every 500 steps",
      "options": {}, "driver": {"method": "relinearize", "every": 500}},
+    {"name": "mcsm defaults + readmit 300 (experiment, off by default)",
+     "options": {"relinearize": {"regate": 6, "gap": 25, "readmit": 300}}},
     {"name": "mcsm gate off, no relinearisation",
      "options": {"gate": None, "history": None, "relinearize": None}},
     {"name": "mcsm before issue 22 (gate 0.99 fixed, no relinearisation)", "options": BEFORE},

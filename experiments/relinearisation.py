@@ -42,7 +42,7 @@ class Counting:
 
     def __init__(self, m: StochasticMap) -> None:
         self.m, self.n_samples = m, m.n_samples
-        self.rejected = self.relins = 0
+        self.rejected = self.relins = self.readmitted = 0
         self.relin_s = self.worst_s = 0.0
 
     def update(self, a: str, b: str, x: Any, trusted: bool = False) -> Any:
@@ -53,6 +53,7 @@ class Counting:
         if r.relin is not None:
             self.relins += 1
             self.relin_s += r.relin.time_s
+            self.readmitted += sum(c.readmitted for c in r.relin.components)
         return r
 
     def __getattr__(self, name: str) -> Any:
@@ -62,8 +63,8 @@ class Counting:
         return frame in self.m
 
     def summary(self) -> str:
-        return (f"refused {self.rejected}, relinearisations {self.relins} ({self.relin_s:.1f} s,"
-                f" worst step {self.worst_s:.3f} s)")
+        return (f"refused {self.rejected}, readmitted {self.readmitted}, relinearisations "
+                f"{self.relins} ({self.relin_s:.1f} s, worst step {self.worst_s:.3f} s)")
 
 
 @functools.lru_cache(maxsize=1)
@@ -189,23 +190,28 @@ def landmarks(options: dict[str, Any], kind: str, rate: float, seed: int, n: int
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("mode", choices=("victoria", "sphere", "clean", "landmarks"))
-    ap.add_argument("--options", default="{}", help="StochasticMap keywords as JSON")
+    ap.add_argument("--options", action="append", default=None,
+                    help="StochasticMap keywords as JSON (repeat: each, one process)")
     ap.add_argument("--seeds", nargs="*", type=int, default=None)
     ap.add_argument("--n-samples", type=int, default=None)
     ap.add_argument("--case", nargs=2, default=("nearby", "0.1"), metavar=("KIND", "RATE"))
     args = ap.parse_args(argv)
-    opts = json.loads(args.options)
-    if args.mode == "clean":
-        print(f"clean {opts}: {clean(opts, args.seeds or [16, 17, 18, 19], args.n_samples or 200)}")
-        return
-    for seed in args.seeds or {"victoria": [1, 2, 11], "sphere": [1], "landmarks": [8]}[args.mode]:
-        if args.mode == "victoria":
-            line = victoria(opts, seed, args.n_samples or 1000)
-        elif args.mode == "sphere":
-            line = sphere(opts, seed, args.n_samples or 200)
-        else:
-            line = landmarks(opts, args.case[0], float(args.case[1]), seed, args.n_samples or 500)
-        print(f"{args.mode} {opts} seed {seed}: {line}", flush=True)
+    for text in args.options or ["{}"]:
+        opts = json.loads(text)
+        if args.mode == "clean":
+            print(f"clean {opts}: "
+                  f"{clean(opts, args.seeds or [16, 17, 18, 19], args.n_samples or 200)}")
+            continue
+        for seed in args.seeds or {"victoria": [1, 2, 11], "sphere": [1],
+                                   "landmarks": [8]}[args.mode]:
+            if args.mode == "victoria":
+                line = victoria(opts, seed, args.n_samples or 1000)
+            elif args.mode == "sphere":
+                line = sphere(opts, seed, args.n_samples or 200)
+            else:
+                line = landmarks(opts, args.case[0], float(args.case[1]), seed,
+                                 args.n_samples or 500)
+            print(f"{args.mode} {opts} seed {seed}: {line}", flush=True)
 
 
 if __name__ == "__main__":

@@ -10,6 +10,8 @@ input (new frames, joins and loop closures alike; rejected closures are not in i
 variables, pose or point, the input's mean and packed square-root information in the
 project's chart (:func:`mcsm.core.relin.moments`), and whether the gate passed it as a loop
 closure (a closure forced in beyond the gate is never left out by a relinearisation).
+*Pending* (only with ``Policy.readmit``): the recent closures the gate refused, in the same
+form, which a later relinearisation may admit as factors.
 *Priors*: dense Gaussian factors on the variables that marginalised old removed variables
 touched (:mod:`mcsm.core.relinearize` writes them when the history outgrows its bound).
 
@@ -38,6 +40,9 @@ _VAR_COLS: dict[str, tuple[Any, tuple[int, ...]]] = {
 _FAC_COLS: dict[str, tuple[Any, tuple[int, ...]]] = {
     "kind": (np.int32, ()), "robust": (np.uint8, ()), "vars": (np.int32, (2,)),
     "z": (np.float64, (7,)), "w": (np.float64, (21,))}
+_PEND_COLS: dict[str, tuple[Any, tuple[int, ...]]] = {
+    "kind": (np.int32, ()), "vars": (np.int32, (2,)), "z": (np.float64, (7,)),
+    "w": (np.float64, (21,)), "at": (np.int64, ()), "burst": (np.uint8, ())}
 
 
 class Table:
@@ -146,6 +151,8 @@ class FactorHistory:
         self.n_inputs = 0                    # factors ever added (the generator's key)
         self.n_relin = 0                     # relinearisations run
         self.n_marginalised = 0              # variables marginalised into priors
+        self.pending = Table(_PEND_COLS)     # refused closures kept for re-admission
+        self.n_readmitted = 0                # refused closures admitted later
 
     # ------------------------------------------------------------------ size
     def nbytes(self) -> int:
@@ -168,6 +175,25 @@ class FactorHistory:
         it out when the whole history contradicts it)."""
         self.factors.append(kind=1 if point else 0, robust=int(robust), vars=(a, b), z=z, w=w)
         self.n_inputs += 1
+
+    def add_pending(self, point: bool, a: int, b: int, z: Array, w: Array) -> None:
+        """A loop closure the gate refused, kept for re-admission (``Policy.readmit``)."""
+        self.pending.append(kind=1 if point else 0, vars=(a, b), z=z, w=w, at=self.n_inputs,
+                            burst=0)
+
+    def age_pending(self, window: int) -> None:
+        """Forget the refused closures older than ``window`` inputs."""
+        if self.pending.n:
+            self.pending.keep(self.n_inputs - self.pending["at"] <= window)
+
+    def pending_of(self, cid: int, burst_only: bool = True) -> npt.NDArray[np.int64]:
+        """Rows of the refused closures kept for component ``cid`` (marked ones only)."""
+        if not self.pending.n:
+            return np.zeros(0, dtype=np.int64)
+        sel = self.vars["group"][self.pending["vars"][:, 0]] == cid
+        if burst_only:
+            sel &= self.pending["burst"] != 0
+        return np.flatnonzero(sel)
 
     def retire(self, frame: str, est_world: Array) -> None:
         """``frame`` left the map: its variable keeps ``est_world``."""
@@ -200,6 +226,11 @@ class FactorHistory:
                 p.vars = new_id[p.vars].astype(np.int32)
                 kept_priors.append(p)
         self.priors = kept_priors
+        if self.pending.n:
+            pv = self.pending["vars"]
+            self.pending.keep(~(gone[pv[:, 0]] | gone[pv[:, 1]]))
+            if self.pending.n:
+                self.pending["vars"][:] = new_id[self.pending["vars"]]
         for v in np.flatnonzero(gone):
             f = self.frame_of.pop(int(v), None)
             if f is not None:
@@ -221,12 +252,17 @@ class FactorHistory:
 
     # ------------------------------------------------------------------ snapshot, digest
     def to_plain(self) -> dict[str, Any]:
-        return {"bound_bytes": self.bound_bytes, "vars": self.vars.to_plain(),
-                "factors": self.factors.to_plain(),
-                "priors": [p.to_plain() for p in self.priors],
-                "groups": {str(c): g.to_plain() for c, g in sorted(self.groups.items())},
-                "frames": [[v, f] for v, f in sorted(self.frame_of.items())],
-                "counters": [self.n_inputs, self.n_relin, self.n_marginalised]}
+        d: dict[str, Any] = {"bound_bytes": self.bound_bytes, "vars": self.vars.to_plain(),
+                             "factors": self.factors.to_plain(),
+                             "priors": [p.to_plain() for p in self.priors],
+                             "groups": {str(c): g.to_plain()
+                                        for c, g in sorted(self.groups.items())},
+                             "frames": [[v, f] for v, f in sorted(self.frame_of.items())],
+                             "counters": [self.n_inputs, self.n_relin, self.n_marginalised]}
+        if self.pending.n or self.n_readmitted:  # only with Policy.readmit
+            d["pending"] = self.pending.to_plain()
+            d["n_readmitted"] = self.n_readmitted
+        return d
 
     @classmethod
     def from_plain(cls, d: dict[str, Any]) -> FactorHistory:
@@ -238,6 +274,9 @@ class FactorHistory:
         h.frame_of = {int(v): str(f) for v, f in d["frames"]}
         h.var_of = {f: v for v, f in h.frame_of.items()}
         h.n_inputs, h.n_relin, h.n_marginalised = (int(c) for c in d["counters"])
+        if "pending" in d:
+            h.pending.load(d["pending"])
+            h.n_readmitted = int(d["n_readmitted"])
         return h
 
     def digest_update(self, h: Any) -> None:
@@ -257,6 +296,12 @@ class FactorHistory:
             h.update(g["world"])
         h.update(repr(plain["frames"]).encode())
         h.update(repr(plain["counters"] + [self.bound_bytes]).encode())
+        if "pending" in plain:
+            t = plain["pending"]
+            h.update(f"pending {t['n']} {plain['n_readmitted']}".encode())
+            for k in sorted(t):
+                if k != "n":
+                    h.update(t[k])
 
 
 __all__ = ["FactorHistory", "Group", "Prior", "Table", "FACTOR_BYTES", "VAR_BYTES"]

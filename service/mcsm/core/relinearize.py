@@ -22,6 +22,7 @@ gives the measurements behind the defaults).
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -78,13 +79,22 @@ class Policy:
         gate it again once (the rejection, if it stays, says so in its verdict); 1: at every
         failure; None: never
     gap : at least this many inputs of the component since its last relinearisation before
-        ``nis`` or ``regate`` relinearises it again
+        ``nis``, ``regate`` or ``readmit`` relinearises it again
+    readmit : keep the loop closures the gate refused within this many inputs of the map's
+        history (None: none); when ``regate`` relinearises their component they are marked,
+        every later relinearisation of it admits the marked ones whose chi-square at its
+        solution is within :data:`TRIM_QUANTILE` (the report's ``readmitted``), and once the
+        last :data:`REGATE_WINDOW` gated closures all passed (and ``gap`` inputs went by) one
+        more solve checks the marked ones left (the map changes only if it admits one), then
+        forgets them (an experiment,
+        off by default: docs/evaluation.md, "Re-admitting refused closures")
     """
 
     nis: float | None = None
     every: int | None = None
     regate: int | None = None
     gap: int = 25
+    readmit: int | None = None
 
     def __post_init__(self) -> None:
         if self.nis is not None and not (isinstance(self.nis, (int, float))
@@ -92,7 +102,7 @@ class Policy:
                                          and 0.0 < self.nis < 1.0):
             raise InvalidOperation(f"relinearise nis must be None or a quantile in (0, 1), "
                                    f"got {self.nis!r}")
-        for name in ("every", "gap", "regate"):
+        for name in ("every", "gap", "regate", "readmit"):
             v = getattr(self, name)
             if (v is not None or name == "gap") and not (
                     isinstance(v, int) and not isinstance(v, bool) and v >= 1):
@@ -101,22 +111,29 @@ class Policy:
             raise InvalidOperation(f"relinearise regate must be at most {REGATE_WINDOW}")
 
     def to_plain(self) -> dict[str, Any]:
-        return {"nis": self.nis, "every": self.every, "regate": self.regate, "gap": self.gap}
+        d: dict[str, Any] = {"nis": self.nis, "every": self.every, "regate": self.regate,
+                             "gap": self.gap}
+        if self.readmit is not None:  # left out when off: the options of maps before it
+            d["readmit"] = self.readmit
+        return d
 
     @classmethod
     def from_plain(cls, d: dict[str, Any]) -> Policy:
         nis, every, regate = d.get("nis"), d.get("every"), d.get("regate")
         if isinstance(regate, bool):  # True: at every failure
             regate = 1 if regate else None
+        readmit = d.get("readmit")
         return cls(None if nis is None else float(nis), None if every is None else int(every),
-                   None if regate is None else int(regate), int(d.get("gap", 1)))
+                   None if regate is None else int(regate), int(d.get("gap", 1)),
+                   None if readmit is None else int(readmit))
 
 
 @dataclass(frozen=True)
 class ComponentRelin:
     """One component's relinearisation: its root, frames redrawn, variables and factors
     solved, Gauss-Newton iterations, cost (sum of squared whitened errors) before and after,
-    loop closures left out (trimmed), or why it was skipped."""
+    loop closures left out (trimmed), refused closures admitted (readmitted, with
+    :attr:`Policy.readmit`), or why it was skipped."""
 
     root: str
     frames: int = 0
@@ -127,12 +144,17 @@ class ComponentRelin:
     cost_after: float = 0.0
     trimmed: int = 0
     skipped: str = ""
+    readmitted: int = 0
 
     def to_dict(self) -> dict[str, Any]:
-        return {"root": self.root, "frames": self.frames, "variables": self.variables,
-                "factors": self.factors, "iterations": self.iterations,
-                "cost_before": self.cost_before, "cost_after": self.cost_after,
-                "trimmed": self.trimmed, "skipped": self.skipped}
+        d: dict[str, Any] = {
+            "root": self.root, "frames": self.frames, "variables": self.variables,
+            "factors": self.factors, "iterations": self.iterations,
+            "cost_before": self.cost_before, "cost_after": self.cost_after,
+            "trimmed": self.trimmed, "skipped": self.skipped}
+        if self.readmitted:  # only with Policy.readmit: the ack's keys stay as they were
+            d["readmitted"] = self.readmitted
+        return d
 
 
 @dataclass(frozen=True)
@@ -272,9 +294,12 @@ def why_not(smap: Relinearizable, cid: int) -> str:
     return ""
 
 
-def relinearize_component(smap: Relinearizable, cid: int) -> ComponentRelin:
+def relinearize_component(smap: Relinearizable, cid: int, *, readmit_only: bool = False
+                          ) -> ComponentRelin:
     """Solve component ``cid`` over its whole history and redraw its edges (see the module
-    docstring). A skipped component changes nothing; a failure raises and changes nothing."""
+    docstring). A skipped component changes nothing; a failure raises and changes nothing.
+    ``readmit_only``: only if the solve admits a refused closure (:attr:`Policy.readmit`);
+    else the component is left as it was (skipped, "nothing to re-admit")."""
     c = smap._comps[cid]
     reason = why_not(smap, cid)
     if reason:
@@ -287,35 +312,118 @@ def relinearize_component(smap: Relinearizable, cid: int) -> ComponentRelin:
     priors = [p for p in h.priors if int(p.vars[0]) in gset]
     kept = h.vars["alive"][ids].astype(np.uint8)
     prob = _problem(smap, h, cid, ids, fmask, priors, kept)
-    with relin.solve(prob, max_iter=MAX_ITERATIONS, tol=TOLERANCE) as sol:
-        slot = np.full(len(ids), -1, dtype=np.int64)
-        alive = np.flatnonzero(kept)
-        slot[alive] = [c.index[h.frame_of[int(v)]] for v in ids[alive]]
-        slot[ids == h.var_of[c.root]] = -1
-        out, flags = host_rows(smap, cid)
-        sol.redraw(out, slot, _key(h, cid))
-        st = sol.stats
-    m = len(c)
-    if kernel.canonicalize_frames(out, flags, 1, m, False) != kernel.OK or \
-            not np.isfinite(out).all():
-        raise NumericalError("the relinearisation produced non-finite samples")
+    sol = relin.solve(prob, max_iter=MAX_ITERATIONS, tol=TOLERANCE)
+    readmitted = 0
+    undo = None
+    try:
+        cand = h.pending_of(cid)
+        if len(cand):
+            admit = _admissible(h, ids, cand, prob)
+            if len(admit):
+                readmitted = len(admit)
+                undo = _admit(h, admit)
+                sol.close()
+                fmask = h.vars["group"][h.factors["vars"][:, 0]] == cid
+                x = prob.x
+                prob = _problem(smap, h, cid, ids, fmask, priors, kept)
+                prob.x[:] = x  # from the solution without them
+                sol = relin.solve(prob, max_iter=MAX_ITERATIONS, tol=TOLERANCE)
+        if readmit_only and not readmitted:
+            sol.close()
+            return ComponentRelin(c.root, skipped="nothing to re-admit")
+        with sol:
+            slot = np.full(len(ids), -1, dtype=np.int64)
+            alive = np.flatnonzero(kept)
+            slot[alive] = [c.index[h.frame_of[int(v)]] for v in ids[alive]]
+            slot[ids == h.var_of[c.root]] = -1
+            out, flags = host_rows(smap, cid)
+            sol.redraw(out, slot, _key(h, cid))
+            st = sol.stats
+        m = len(c)
+        if kernel.canonicalize_frames(out, flags, 1, m, False) != kernel.OK or \
+                not np.isfinite(out).all():
+            raise NumericalError("the relinearisation produced non-finite samples")
+    except BaseException:
+        sol.close()
+        if undo is not None:  # a failure changes nothing: the admitted ones are pending again
+            undo()
+        raise
     replace_rows(smap, cid, out)
     h.vars["est"][ids] = relin.transform(h.groups[cid].world, prob.x, prob.vkind)
     h.groups[cid].since = 0
     h.n_relin += 1
     return ComponentRelin(c.root, m, len(ids), int(np.count_nonzero(fmask)) + len(priors),
-                          st.iterations, st.cost_before, st.cost_after, st.trimmed)
+                          st.iterations, st.cost_before, st.cost_after, st.trimmed,
+                          readmitted=readmitted)
+
+
+def _admissible(h: FactorHistory, ids: npt.NDArray[np.int64], cand: npt.NDArray[np.int64],
+                prob: relin.Problem) -> npt.NDArray[np.int64]:
+    """The refused closures (rows ``cand`` of the history's pending table) whose chi-square
+    at the solution ``prob.x`` (variables ``ids``) is within :data:`TRIM_QUANTILE` for their
+    dof: those a relinearisation with them would not trim. Each chi-square is the kernel's
+    (a one-factor problem at the solution, no iteration), in row order."""
+    local = np.full(h.vars.n, -1, dtype=np.int64)
+    local[ids] = np.arange(len(ids))
+    pend = h.pending
+    kinds = pend["kind"][cand]
+    thr = _trim_thresholds(np.ones(len(cand), dtype=np.uint8), pend["w"][cand], kinds)
+    out = []
+    for k, row in enumerate(cand):
+        a, b = (int(local[v]) for v in pend["vars"][row])
+        if a < 0 or b < 0 or not thr[k] > 0.0:
+            continue
+        one = relin.Problem(
+            vkind=np.ascontiguousarray(prob.vkind[[a, b]]),
+            vfixed=np.array([1, 0], dtype=np.uint8), vkept=np.array([0, 1], dtype=np.uint8),
+            x=np.ascontiguousarray(prob.x[[a, b]]),
+            fkind=np.array([kinds[k]], dtype=np.int32), fvars=np.array([[0, 1]], np.int32),
+            fz=np.ascontiguousarray(pend["z"][row][None]),
+            fw=np.ascontiguousarray(pend["w"][row][None]),
+            pvoff=np.zeros(1, np.int64), pvars=np.zeros(0, np.int32),
+            pdoff=np.zeros(1, np.int64), prows=np.zeros(0, np.int64), pdata=np.zeros(0),
+            pose_active=prob.pose_active, point_active=prob.point_active)
+        try:
+            with relin.solve(one, max_iter=0) as s1:
+                chi2 = s1.stats.cost_before
+        except McsmError:
+            continue
+        if chi2 <= thr[k]:
+            out.append(int(row))
+    return np.array(out, dtype=np.int64)
+
+
+def _admit(h: FactorHistory, rows: npt.NDArray[np.int64]) -> Callable[[], None]:
+    """Refused closures (pending rows) become factors of the history, gated (so a later
+    relinearisation trims them like any other), and leave the pending table; returns what
+    undoes it (a solve that fails after it)."""
+    pend = h.pending
+    saved = (h.factors.n, h.n_inputs, h.n_readmitted, pend.to_plain())
+
+    def undo() -> None:
+        h.factors.n, h.n_inputs, h.n_readmitted = saved[:3]
+        pend.load(saved[3])
+    for row in rows:
+        a, b = (int(v) for v in pend["vars"][row])
+        h.add_factor(bool(pend["kind"][row]), a, b, pend["z"][row].copy(),
+                     pend["w"][row].copy(), robust=True)
+    keep = np.ones(pend.n, dtype=bool)
+    keep[rows] = False
+    pend.keep(keep)
+    h.n_readmitted += len(rows)
+    return undo
 
 
 def relinearize(smap: Relinearizable, cids: list[int], trigger: str) -> RelinReport:
     """Relinearise components ``cids`` in order; the report. A component whose solve fails is
     left as it was and reported as skipped (never raised: an automatic relinearisation runs
-    after its update was applied)."""
+    after its update was applied). Trigger ``readmit`` changes a component only if it admits
+    a refused closure."""
     t0 = time.perf_counter()
     comps = []
     for cid in cids:
         try:
-            comps.append(relinearize_component(smap, cid))
+            comps.append(relinearize_component(smap, cid, readmit_only=trigger == "readmit"))
         except McsmError as exc:
             comps.append(ComponentRelin(smap._comps[cid].root,
                                         skipped=f"failed: {type(exc).__name__}: {exc}"))

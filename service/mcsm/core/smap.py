@@ -334,9 +334,12 @@ class StochasticMap(Forest):
             r = self._join(a, b, x_rows, point)
         else:
             r = self._loop_closure(a, b, x, x_rows, point, trusted)
-        if h is None or zw is None or r.kind == "rejected":
+        if h is None or zw is None:
             return r
         cid = self._where[a]
+        if r.kind == "rejected":
+            self._keep_refused(h, cid, a, b, point, zw, r.relin is not None)
+            return r
         self._record(h, cid, a, b, point, r.kind, r.verdict, zw, join)
         report = r.relin if r.relin is not None else self._automatic(h, cid, r)
         if h.over_bound():
@@ -380,6 +383,21 @@ class StochasticMap(Forest):
         h.add_factor(point, h.var_of[a], h.var_of[b], *zw, robust=gated)
         g.since += 1
 
+    def _keep_refused(self, h: FactorHistory, cid: int, a: str, b: str, point: bool,
+                      zw: tuple[Array, Array], burst: bool) -> None:
+        """A closure the gate refused: kept for re-admission (``Policy.readmit``), marked if
+        its component was just relinearised because of refusals (``regate``)."""
+        p = self.policy
+        if p is None or p.readmit is None:
+            return
+        h.age_pending(p.readmit)
+        g = h.groups.get(cid)
+        if g is None or g.tainted or a not in h.var_of or b not in h.var_of:
+            return
+        h.add_pending(point, h.var_of[a], h.var_of[b], *zw)
+        if burst:  # the regate relinearisation ran for this closure
+            h.pending["burst"][-1] = 1
+
     def _record_join(self, h: FactorHistory, cid1: int, cid2: int, old_root: str) -> None:
         g1, g2 = h.groups.get(cid1), h.groups.get(cid2)
         if g1 is None or g2 is None or g1.tainted or g2.tainted:
@@ -407,6 +425,17 @@ class StochasticMap(Forest):
             return relinearize(self, [cid], "nis")
         if p.every is not None and g.since >= p.every:
             return relinearize(self, [cid], "every")
+        if p.readmit is not None:
+            h.age_pending(p.readmit)
+            if (r.kind == "loop_closure" and g.since >= p.gap
+                    and len(self._gate_fail) == REGATE_WINDOW and not any(self._gate_fail)
+                    and len(h.pending_of(cid))):
+                report = relinearize(self, [cid], "readmit")
+                left = np.ones(h.pending.n, dtype=bool)
+                left[h.pending_of(cid)] = False
+                h.pending.keep(left)
+                # a solve that admitted nothing left the map as it was: nothing to report
+                return report if any(c.readmitted for c in report.components) else None
         return None
 
     def _can_regate(self, cid: int, trusted: bool) -> bool:
@@ -478,6 +507,9 @@ class StochasticMap(Forest):
         report = None
         if verdict.status == "rejected" and self._can_regate(cid, trusted):
             before = verdict.nis
+            h = self.factor_history
+            if h is not None and h.pending.n:  # refusals kept for re-admission: a burst
+                h.pending["burst"][h.pending_of(cid, burst_only=False)] = 1
             report = relinearize(self, [cid], "gate")
             prep = joint.prepare(c, ia, ib, x_rows, point, self.space, self.analysis)
             verdict = self._verdict(prep, trusted)
