@@ -29,13 +29,9 @@ slow server: the message says which), 4 ``update`` of a constraint the server's 
 from __future__ import annotations
 
 import argparse
-import faulthandler
 import os
-import signal
 import sys
-import threading
 from pathlib import Path
-from typing import Any
 
 from mcsm.errors import McsmError, NoPermittedServer, NoServer, Timeout, Unreachable
 from mcsm.serve.connect import check_endpoint, fill_connection_defaults
@@ -272,7 +268,6 @@ def main(argv: list[str] | None = None) -> int:
     if not hasattr(args, "timeout_s"):
         args.timeout_s = 10.0
     prog = f"mcsm-client {args.command}"
-    previous = _bounded_interrupt(prog)
     try:
         if not args.timeout_s > 0:
             raise UsageError("--timeout-s must be > 0")
@@ -300,53 +295,10 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_REFUSED
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
-        if previous is not None:  # the console script: exit now, not through the
-            sys.stdout.flush()  # interpreter's finalisation of the session's native threads
-            sys.stderr.flush()
-            os._exit(EXIT_INTERRUPTED)
         return EXIT_INTERRUPTED
     except BrokenPipeError:  # the reader went away (`... | head`): not an error of ours
         _silence_stdout()
         return EXIT_OK
-    finally:
-        if previous is not None:
-            signal.signal(signal.SIGINT, previous)
-            faulthandler.cancel_dump_traceback_later()
-
-
-INTERRUPT_GRACE_S = 5.0
-"""After Ctrl-C, how long the command may take to close its session before it exits 130
-anyway (a native library's cleanup must not keep an interrupted command alive)."""
-
-
-def _bounded_interrupt(prog: str) -> Any:
-    """Make Ctrl-C (SIGINT) end the command within :data:`INTERRUPT_GRACE_S`: it raises
-    KeyboardInterrupt as usual (the command closes its session and exits 130), and a timer
-    started then exits 130 anyway once the grace has passed; should even the timer not run
-    (the interpreter stuck), faulthandler prints every thread's stack and exits 1 after twice
-    the grace, so a hang is never silent. Installed only on the main thread over Python's
-    default handler (an embedding program keeps its own); returns the handler to restore
-    (None: not installed). An interrupted console script exits with ``os._exit`` once it has
-    printed ``interrupted``: nothing of a client needs the interpreter's finalisation."""
-    if threading.current_thread() is not threading.main_thread() or \
-            signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
-        return None
-
-    def force() -> None:
-        sys.stderr.write(f"{prog}: interrupted (the session did not close within "
-                         f"{INTERRUPT_GRACE_S:.0f} s)\n")
-        sys.stderr.flush()
-        os._exit(EXIT_INTERRUPTED)
-
-    def on_sigint(signum: int, frame: Any) -> None:
-        signal.signal(signal.SIGINT, signal.default_int_handler)  # a second Ctrl-C: at once
-        timer = threading.Timer(INTERRUPT_GRACE_S, force)
-        timer.daemon = True
-        timer.start()
-        faulthandler.dump_traceback_later(2 * INTERRUPT_GRACE_S, exit=True)
-        raise KeyboardInterrupt
-
-    return signal.signal(signal.SIGINT, on_sigint)
 
 
 def _silence_stdout() -> None:
