@@ -358,9 +358,18 @@ def test_rogue_replies_are_never_accepted(served: tuple[str, Server]) -> None:
             while len(seen := c.servers(0.5)) < 2 and time.monotonic() < deadline:
                 pass  # the rogue's token reaches the client
             assert len(seen) == 2, seen  # (else the refusal below would not be tested)
-            c._server = None  # the lookups above may have settled on one of them
-            with pytest.raises(McsmError, match="2 servers claim map"):
-                c.info()
+            # a lookup that sees both refuses to guess. A liveliness query on a loaded machine
+            # now and then answers with one token only (Zenoh's, not ours: 1 in ~10 suites
+            # here); the client then talks to the one it saw, so the lookup is tried 3 times
+            refused = []
+            for _ in range(3):
+                c._server = None  # as after a restart: find the server again
+                try:
+                    c.info()
+                except McsmError as exc:
+                    refused.append(str(exc))
+                    break
+            assert refused and "2 servers claim map" in refused[0], refused
             tok.undeclare()
         # a client pinned to the real server id is not confused by either
         with MapClient(connect=ep, timeout_s=10, server_id=srv.server_id) as c:
