@@ -142,14 +142,21 @@ def test_cli_timeout_exit_code_and_help() -> None:
 
 def test_cli_interrupted_exit_code(server: ServerProcess) -> None:
     """Exit code 130 (README, ``mcsm-client --help``): Ctrl-C (SIGINT) during a command."""
-    p = subprocess.Popen([sys.executable, "-m", "mcsm_client.cli", "watch", "--connect",
-                          server.endpoint], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                         text=True)
+    # -X faulthandler: should it hang, SIGABRT prints every thread's stack (into the failure)
+    p = subprocess.Popen([sys.executable, "-X", "faulthandler", "-m", "mcsm_client.cli",
+                          "watch", "--connect", server.endpoint], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
     assert p.stderr is not None
     line = p.stderr.readline()  # "watching map 'default' (Ctrl-C to stop)": it is running
     assert "watching map" in line, line
     p.send_signal(signal.SIGINT)
-    _, err = p.communicate(timeout=30)
+    try:
+        _, err = p.communicate(timeout=30)
+    except subprocess.TimeoutExpired:
+        status = Path(f"/proc/{p.pid}/status").read_text()
+        p.send_signal(signal.SIGABRT)
+        _, err = p.communicate(timeout=10)
+        raise AssertionError(f"no exit 30 s after SIGINT\n{status}\n{err}") from None
     assert p.returncode == 130, err
     assert "interrupted" in err and "Traceback" not in err
 
