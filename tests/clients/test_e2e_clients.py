@@ -140,12 +140,19 @@ def test_cli_timeout_exit_code_and_help() -> None:
     assert r.returncode == 0 and "--bounded" in r.stdout
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_cli_interrupted_exit_code(server: ServerProcess) -> None:
     """Exit code 130 (README, ``mcsm-client --help``): Ctrl-C (SIGINT) during a command."""
-    # -X faulthandler: should it hang, SIGABRT prints every thread's stack (into the failure)
+    # As a terminal's foreground command: SIGINT at its default. A suite started in the
+    # background (CI, `make test &`, nohup) ignores SIGINT and its children inherit that: the
+    # command then never sees the Ctrl-C (SigIgn in /proc showed it). -X faulthandler: should
+    # it hang anyway, SIGABRT prints every thread's stack into the failure.
     p = subprocess.Popen([sys.executable, "-X", "faulthandler", "-m", "mcsm_client.cli",
                           "watch", "--connect", server.endpoint], stdout=subprocess.PIPE,
-                         stderr=subprocess.PIPE, text=True)
+                         stderr=subprocess.PIPE, text=True, preexec_fn=_default_sigint)
     assert p.stderr is not None
     line = p.stderr.readline()  # "watching map 'default' (Ctrl-C to stop)": it is running
     assert "watching map" in line, line
