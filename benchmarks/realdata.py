@@ -79,9 +79,11 @@ CONFIGS: list[dict[str, Any]] = [
     {"name": "mcsm defaults", "options": {}},
     {"name": "mcsm RECOMMENDED (nis 0.95, regate 1, gap 25)",
      "options": {"relinearize": _recommended()}},
+    {"name": "mcsm repair only (regate 6, gap 25: the defaults before spread)",
+     "options": {"relinearize": {"regate": 6, "gap": 25}}},
     {"name": "mcsm defaults + relinearize() every 500 steps",
      "options": {}, "driver": {"method": "relinearize", "every": 500}},
-    {"name": "mcsm defaults + readmit 300 (experiment, off by default)",
+    {"name": "mcsm repair only + readmit 300 (experiment, off by default)",
      "options": {"relinearize": {"regate": 6, "gap": 25, "readmit": 300}}},
     {"name": "mcsm gate off, no relinearisation",
      "options": {"gate": None, "history": None, "relinearize": None}},
@@ -427,7 +429,8 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     ap.add_argument("--n-samples", type=int, default=None, help="default per data set")
     ap.add_argument("--max-steps", type=int, default=None, help="a prefix of each data set")
     ap.add_argument("--quick", action="store_true", help="short prefixes, N = 100, one seed")
-    ap.add_argument("--configs", nargs="*", default=None, help="names (substrings) to run")
+    ap.add_argument("--configs", nargs="*", default=None,
+                    help="configurations to run: a whole name, or a substring of names")
     ap.add_argument("--prototypes", action="store_true",
                     help="the relinearisation prototypes' configurations instead of CONFIGS")
     ap.add_argument("--list", action="store_true", help="configurations and availability")
@@ -442,8 +445,10 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
         from experiments.relin_prototypes import PROTOTYPES
 
         configs = PROTOTYPES
-    if args.configs:
-        configs = [c for c in configs if any(s in c["name"] for s in args.configs)]
+    if args.configs:  # a whole name selects that configuration alone, else substrings
+        names = {c["name"] for c in configs}
+        configs = [c for c in configs if any(s == c["name"] or (s not in names and s in c["name"])
+                                             for s in args.configs)]
     if args.list:
         for c in configs:
             print(f"{c['name']}: {c.get('options', {})} {c.get('driver', {})} -> "

@@ -31,7 +31,8 @@ OPTION_SETS: dict[str, dict[str, object]] = {
     "denkf+1.01": {"analysis": "denkf", "inflation": 1.01},
     "no gate": {"gate": None},
     "paper": {"method": "paper"},
-    "relinearize often": {"relinearize": {"nis": 0.5, "every": 4, "gap": 2, "regate": 1},
+    "relinearize often": {"relinearize": {"nis": 0.5, "every": 4, "gap": 2, "regate": 1,
+                                          "spread": 1.3},
                           "gate_scale": {"window": 3, "open": 1.0, "max": 4.0}},
 }
 

@@ -8,7 +8,7 @@ import pytest
 from mcsm import StochasticMap
 from mcsm.core import relin
 from mcsm.core.quat import qmul, rotation_matrix
-from mcsm.core.relinearize import _problem
+from mcsm.core.relinearize import Policy, _problem
 from mcsm.errors import InvalidOperation
 from mcsm_client.sampling import sample_planar
 from scipy.optimize import least_squares
@@ -28,14 +28,17 @@ def translation_samples(rng: np.random.Generator, n: int, mean: list[float], sd:
     return x
 
 
-def test_a_linear_gaussian_chain_relinearises_to_the_exact_posterior() -> None:
+@pytest.mark.parametrize("spread", [1.0, 1.5])
+def test_a_linear_gaussian_chain_relinearises_to_the_exact_posterior(spread: float) -> None:
     """Translation-only inputs (rotations exactly the identity, so no information on them):
     the problem is linear-Gaussian and the posterior of the recorded moments is exact. The
     redrawn edges' means equal it within 1e-9 and their sample covariance the exact one within
-    4 standard errors (the redraw is second-order exact here, so far tighter)."""
+    4 standard errors (the redraw is second-order exact here, so far tighter); with a policy's
+    ``spread`` (no automatic trigger) the covariance is ``spread**2`` times the exact one."""
     rng = np.random.default_rng(20261201)
     n = 1500
-    m = StochasticMap(n, gate=None, relinearize=None)
+    m = StochasticMap(n, gate=None,
+                      relinearize=None if spread == 1.0 else Policy(spread=spread))
     inputs: list[tuple[str, str, np.ndarray]] = []
     for a, b, mean in (("x0", "x1", [1, 0, 0]), ("x1", "x2", [1, 0.2, 0.1]),
                        ("x2", "x3", [0.8, 0.5, 0]), ("x3", "x4", [0, 1, -0.1]),
@@ -74,6 +77,8 @@ def test_a_linear_gaussian_chain_relinearises_to_the_exact_posterior() -> None:
     want_cov = cov[np.ix_(sel, sel)]
     assert np.max(np.abs(got.mean(axis=0) - want_mean)) < 1e-9
     sd = np.sqrt(want_cov**2 + np.outer(np.diag(want_cov), np.diag(want_cov))) / np.sqrt(n)
+    want_cov = spread**2 * want_cov
+    sd = spread**2 * sd
     assert np.all(np.abs(np.cov(got.T) - want_cov) < 4.0 * sd)
     # the rotations carried no information: they stay exactly the identity, no spread
     for f in ("x1", "x3", "x4", "l0"):
@@ -253,7 +258,8 @@ def test_history_options_snapshot_and_digest() -> None:
     n = 40
     m = StochasticMap(n, relinearize={"nis": 0.9, "gap": 5, "regate": 2})
     assert m.options()["relinearize"]["regate"] == 2 and "history" in m.options()
-    assert StochasticMap(n).options()["relinearize"]["regate"] == 6  # the default: a repair
+    default = StochasticMap(n).options()["relinearize"]  # the default: DEFAULT_POLICY
+    assert (default["nis"], default["regate"], default["spread"]) == (0.95, 1, 1.3)
     for k in range(6):
         m.update(f"p{k}", f"p{k + 1}", random_at(rng, n, kind="cloud", t_sigma=0.2))
     before = m.state_digest()
@@ -290,3 +296,54 @@ def test_an_imported_component_is_not_relinearised_and_says_why() -> None:
     assert np.array_equal(m.edges("q0"), before)
     m.update("p1", "q2", random_at(rng, n, kind="cloud", t_sigma=0.2))  # a join taints
     assert "imported submap" in m.relinearize().components[0].skipped
+
+
+def test_the_policy_spread_is_checked_and_kept_in_the_options() -> None:
+    """``spread`` in [1, 2]: anything else is refused as the other fields are; 1 is left out
+    of the plain form (the options of maps made before it are unchanged), any other value
+    round-trips, and a map's options carry it."""
+    for bad in (0.99, 2.5, "1.2", True, float("nan")):
+        with pytest.raises(InvalidOperation, match="spread"):
+            Policy(spread=bad)  # type: ignore[arg-type]
+        with pytest.raises(InvalidOperation, match="spread"):
+            Policy.from_plain({"regate": 1, "spread": bad})
+    assert "spread" not in Policy(regate=6, gap=25).to_plain()
+    p = Policy(nis=0.95, regate=1, gap=25, spread=1.15)
+    assert Policy.from_plain(p.to_plain()) == p
+    m = StochasticMap(20, relinearize={"regate": 1, "spread": 1.3})
+    assert m.options()["relinearize"]["spread"] == 1.3
+    assert StochasticMap.from_options(m.options()).policy == m.policy
+
+
+def test_the_spread_stops_at_the_rotation_cap() -> None:
+    """Two planar components redrawn with ``spread=1.3`` against the same maps redrawn with the
+    posterior itself: the one whose rotations are tight (0.05 rad per step) gets exactly 1.3 x
+    its deviations; in the one whose rotations are wide (0.4 rad per step, every pose's
+    rotation RMS above :data:`relin.SPREAD_ROTATION_CAP`) the factor is lowered to 1 and its
+    samples are the posterior's, bit for bit."""
+    n = 400
+
+    def build(spread: float) -> StochasticMap:
+        m = StochasticMap(n, gate=None, relinearize=Policy(spread=spread))
+        draw = np.random.default_rng(7)
+        for prefix, yaw_sd in (("t", 0.05), ("w", 0.4)):
+            for k in range(4):
+                m.update(f"{prefix}{k}", f"{prefix}{k + 1}",
+                         sample_planar(np.array([1.0, 0.1, 0.2]),
+                                       np.diag([0.01, 0.01, yaw_sd**2]), n_samples=n, rng=draw))
+        m.relinearize()
+        return m
+
+    def yaw_rms(x: np.ndarray) -> float:
+        yaw = 2.0 * np.arctan2(x[:, 6], x[:, 3])
+        return float(np.sqrt(np.mean((yaw - yaw.mean()) ** 2)))
+
+    exact, wide = build(1.0), build(1.3)
+    for k in range(1, 5):
+        a, b = exact.query("t0", f"t{k}"), wide.query("t0", f"t{k}")
+        da, db = a[:, :2] - a[:, :2].mean(axis=0), b[:, :2] - b[:, :2].mean(axis=0)
+        assert np.allclose(db, 1.3 * da, rtol=1e-9, atol=1e-12)
+        assert yaw_rms(b) == pytest.approx(1.3 * yaw_rms(a), rel=1e-3)  # chart: 2 sin(yaw / 2)
+        w = wide.query("w0", f"w{k}")
+        assert np.array_equal(exact.query("w0", f"w{k}"), w)
+        assert yaw_rms(w) > relin.SPREAD_ROTATION_CAP

@@ -24,7 +24,9 @@ from mcsm_client.client import MapClient
 from tests.service.daemon_util import Daemon, noisy_at, start_daemon, start_router, wait_for
 
 N = 32
-POLICY = {"nis": 0.95, "every": 6, "gap": 3, "regate": 1}
+POLICY = {"nis": 0.95, "every": 6, "gap": 3, "regate": 1, "spread": 1.3}
+# OPTS leave --relinearize-spread at its default (the default policy's 1.3); the standby test
+# names it
 # the recording's one state snapshot comes at seq 25, after the retract and reinstate (a
 # --restore from a snapshot taken between a retracted input and its retraction refuses the
 # retraction: a limit of the retract window, not of relinearisation)
@@ -155,7 +157,7 @@ def test_a_standby_follows_relinearisations(tmp_path: Path, daemons: list[Daemon
     router, ep = start_router(tmp_path)
     repl = ("--samples", str(N), "--connect", ep, "--nats", ",".join(nats.urls),
             "--relinearize-nis", "0.95", "--relinearize-every", "6", "--relinearize-gap", "3",
-            "--relinearize-regate", "1")
+            "--relinearize-regate", "1", "--relinearize-spread", "1.3")
     try:
         p = start_daemon(tmp_path, *repl, "--map", "m", name="p", endpoint="-")
         daemons.append(p)
@@ -186,3 +188,30 @@ def test_a_standby_follows_relinearisations(tmp_path: Path, daemons: list[Daemon
     rep = replay(s.record)
     assert rep.divergence is None
     assert rep.final_digests()["m"] == _fresh([*ops, last]).state_digest()
+
+
+def test_the_serve_flags_give_the_default_policy_and_refuse_a_bad_spread(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """``mcsm serve`` with no relinearisation flag gives the core's default policy; a spread
+    outside [1, 2] is a usage error; with every trigger off a spread other than 1 is kept (for
+    requested relinearisations), and ``--history none`` turns the policy off."""
+    from mcsm.cli import build_parser
+    from mcsm.cli.serve_cmd import _policy
+    from mcsm.core.relinearize import Policy
+    from mcsm.core.smap import DEFAULT_POLICY
+
+    def policy(*argv: str) -> dict[str, object] | None:
+        return _policy(build_parser().parse_args(["serve", *argv]))
+
+    default = policy()
+    assert default is not None and Policy.from_plain(default) == DEFAULT_POLICY
+    for bad in ("3", "0.5", "wide"):
+        with pytest.raises(SystemExit) as exc:
+            build_parser().parse_args(["serve", "--relinearize-spread", bad])
+        assert exc.value.code == 2
+        assert "expected a number in [1, 2]" in capsys.readouterr().err
+    off = ("--relinearize-nis", "none", "--relinearize-regate", "none")
+    assert policy(*off, "--relinearize-spread", "1") is None
+    kept = policy(*off, "--relinearize-spread", "1.5")
+    assert kept is not None and Policy.from_plain(kept) == Policy(gap=25, spread=1.5)
+    assert policy("--history", "none") is None

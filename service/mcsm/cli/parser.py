@@ -25,6 +25,7 @@ from mcsm.cli.serve_cmd import (
     _history,
     _inflation,
     _shrink,
+    _spread,
     router_cmd,
     serve,
 )
@@ -143,6 +144,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="when a loop closure fails the gate and K of the last 8 gated closures "
                         "failed, relinearise its component and gate it again (at most once per "
                         "--relinearize-gap inputs; default %(default)s)")
+    s.add_argument("--relinearize-spread", type=_spread, default=pol.spread, metavar="S",
+                   help="every relinearisation draws S x the posterior's deviations (1: the "
+                        "posterior itself; at most 2; default %(default)s, "
+                        "docs/relinearisation.md 'Redraw spread')")
     s.add_argument("--record", type=Path, default=None, metavar="PATH.mcap",
                    help="new recording file (default recordings/run-<UTC time>.mcap)")
     s.add_argument("--restore", type=Path, nargs="+", default=None, metavar="PATH.mcap",

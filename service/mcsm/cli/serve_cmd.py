@@ -66,6 +66,16 @@ def _gate(text: str) -> float | None:
     return q
 
 
+def _spread(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        v = 0.0
+    if not 1.0 <= v <= 2.0:
+        raise argparse.ArgumentTypeError(f"expected a number in [1, 2], got {text!r}")
+    return v
+
+
 def _gate_scale(text: str) -> dict[str, Any] | None:
     if text == "none":
         return None
@@ -100,18 +110,19 @@ def _every(text: str) -> int | None:
 
 
 def _policy(args: argparse.Namespace) -> dict[str, Any] | None:
-    """The automatic relinearisation policy of the serve flags (None: none asked for)."""
+    """The relinearisation policy of the serve flags (None: none, not even a spread for
+    requested relinearisations)."""
     pol = DEFAULT_POLICY or Policy()
-    if args.relinearize_nis is None and args.relinearize_every is None \
-            and args.relinearize_regate is None:
-        return None
+    triggers = (args.relinearize_nis, args.relinearize_every, args.relinearize_regate)
     if args.history is None:
-        if (args.relinearize_nis, args.relinearize_every, args.relinearize_regate) == (
-                pol.nis, pol.every, pol.regate):
+        if triggers in ((pol.nis, pol.every, pol.regate), (None, None, None)):
             return None  # --history none turns the default policy off
         raise McsmError("--relinearize-* needs a history (not --history none)")
+    if triggers == (None, None, None) and args.relinearize_spread == 1.0:
+        return None
     return {"nis": args.relinearize_nis, "every": args.relinearize_every,
-            "regate": args.relinearize_regate, "gap": args.relinearize_gap}
+            "regate": args.relinearize_regate, "gap": args.relinearize_gap,
+            "spread": args.relinearize_spread}
 
 
 def _defer(text: str) -> int:

@@ -399,17 +399,89 @@ static void whiten_rows(double *Z, long K, long n, const uint8_t *dead, double *
     }
 }
 
+/* The spread: every kept position's deviations are multiplied by spread, lowered for a pose
+ * whose rotation deviations would then have an RMS above rot_cap (radians, in the chart: the
+ * largest over its rotation coordinates; ss[k] holds row k's sum of squares over the n samples),
+ * to rot_cap / RMS but never below 1. A pose that uncertain in rotation gets (nearly) the
+ * posterior itself: the chart, and the filter's updates after it, degrade at that spread. The
+ * factors form a diagonal D, so the covariance D C D stays a covariance. fac: one per kept
+ * position. */
+static void spread_factors(const mr_problem *P, const mr_state *S, const double *ss, long n,
+                           double spread, double rot_cap, double *fac) {
+    long kp = S->kept_pos, s0 = S->soff[kp];
+    for (long p = kp; p < S->ns; p++) {
+        double f = spread, worst = 0.0;
+        if (P->vkind[S->var_at[p]] == 0)
+            for (int a = 0; a < S->dim[p]; a++)
+                if (S->act[6 * p + a] >= 3) {
+                    double v = ss[S->soff[p] + a - s0] / (double)n;
+                    if (v > worst) worst = v;
+                }
+        double rms = sqrt(worst);
+        if (spread * rms > rot_cap) f = rot_cap / rms;
+        fac[p - kp] = f > 1.0 ? f : 1.0;
+    }
+}
+
+/* Row k's sum of squares of its first cn values (stride ld) added into ss[k]. */
+static void add_squares(const double *z, long K, long ld, long cn, double *ss) {
+    for (long k = 0; k < K; k++) {
+        double t = ss[k];
+        for (long c = 0; c < cn; c++) t = t + z[k * ld + c] * z[k * ld + c];
+        ss[k] = t;
+    }
+}
+
+/* The rows of each kept position (each of stride ld, the first cn used) times its factor. */
+static void scale(const mr_state *S, double *z, long ld, long cn, const double *fac) {
+    long kp = S->kept_pos, s0 = S->soff[kp];
+    for (long p = kp; p < S->ns; p++) {
+        double f = fac[p - kp];
+        if (f == 1.0) continue;
+        for (int a = 0; a < S->dim[p]; a++) {
+            double *r = z + (S->soff[p] + a - s0) * ld;
+            for (long c = 0; c < cn; c++) r[c] = r[c] * f;
+        }
+    }
+}
+
+static int draw(const mr_problem *P, const mr_state *S, double *out, const int64_t *slot,
+                long n, uint64_t key, long exact_max, double spread, double rot_cap, double *ss,
+                double *fac);
+
 /* After mr_solve: N samples of the kept variables from the Gaussian around the solution with
  * covariance (L_kk L_kk^T)^-1, written as edges (7 rows of n) into out at frame slot[v]
  * (variables with slot < 0 are skipped). Each coordinate's normals are centred on their
  * sample mean, so every edge's mean in the chart is the solution. When the kept dimensions K
  * are fewer than n (and at most exact_max), the normals are also whitened so that their sample
  * covariance is the identity: the samples' covariance is then the posterior's, with no sampling
- * error (second-order exact sampling); otherwise they are independent draws. */
+ * error (second-order exact sampling); otherwise they are independent draws. Every deviation
+ * is then multiplied by spread (1: the posterior itself; > 1: a wider ensemble, the policy's
+ * allowance for what the model leaves out), capped per pose by rot_cap (spread_factors), one
+ * product per value in a fixed order, so the bits stay portable. */
 int mr_redraw(const mr_problem *P, double *out, const int64_t *slot, long n, uint64_t key,
-              long exact_max) {
+              long exact_max, double spread, double rot_cap) {
     const mr_state *S = P->state;
-    if (S == NULL || n < 2) return MR_BAD_ARGS;
+    if (S == NULL || n < 2 || !(spread >= 1.0 && spread <= 4.0) || !(rot_cap > 0.0))
+        return MR_BAD_ARGS;
+    long kp = S->kept_pos, s0 = S->soff[kp], K = S->nscal - s0;
+    int spreading = spread != 1.0;
+    double *ss = spreading ? calloc((size_t)(K ? K : 1), sizeof(double)) : NULL;
+    double *fac = spreading ? malloc(sizeof(double) * (size_t)(S->ns - kp + 1)) : NULL;
+    if (spreading && (ss == NULL || fac == NULL)) {
+        free(ss);
+        free(fac);
+        return MR_NO_MEMORY;
+    }
+    int rc = draw(P, S, out, slot, n, key, exact_max, spread, rot_cap, ss, fac);
+    free(ss);
+    free(fac);
+    return rc;
+}
+
+static int draw(const mr_problem *P, const mr_state *S, double *out, const int64_t *slot,
+                long n, uint64_t key, long exact_max, double spread, double rot_cap, double *ss,
+                double *fac) {
     long kp = S->kept_pos, s0 = S->soff[kp], K = S->nscal - s0;
     const uint8_t *dead = S->dead + s0;
     int exact = K < n && K <= exact_max;
@@ -435,6 +507,11 @@ int mr_redraw(const mr_problem *P, double *out, const int64_t *slot, long n, uin
         if (exact) whiten_rows(Z, K, n, dead, L);
         free(L);
         mr_backward(S, Z, kp, n, n);
+        if (fac != NULL) {
+            add_squares(Z, K, n, n, ss);
+            spread_factors(P, S, ss, n, spread, rot_cap, fac);
+            scale(S, Z, n, n, fac);
+        }
         write_edges(P, S, Z, n, 0, n, out, slot, n);
         free(Z);
         return MR_OK;
@@ -453,17 +530,26 @@ int mr_redraw(const mr_problem *P, double *out, const int64_t *slot, long n, uin
             for (long i = 0; i < n; i++) s += normal_at(key, c0 + (uint64_t)i);
             zbar[S->soff[p] + a - s0] = s / (double)n;
         }
-    for (long i0 = 0; i0 < n; i0 += CHUNK) {
-        long cn = n - i0 < CHUNK ? n - i0 : CHUNK;
-        for (long p = kp; p < S->ns; p++)
-            for (int a = 0; a < S->dim[p]; a++) {
-                uint64_t c0 = counter0(S, p, a, n) + (uint64_t)i0;
-                long k = S->soff[p] + a - s0;
-                for (long c = 0; c < cn; c++)
-                    Z[k * CHUNK + c] = normal_at(key, c0 + (uint64_t)c) - zbar[k];
+    /* with a spread, a first pass over the chunks sums the squares the factors need */
+    for (int pass = fac != NULL ? 0 : 1; pass < 2; pass++) {
+        for (long i0 = 0; i0 < n; i0 += CHUNK) {
+            long cn = n - i0 < CHUNK ? n - i0 : CHUNK;
+            for (long p = kp; p < S->ns; p++)
+                for (int a = 0; a < S->dim[p]; a++) {
+                    uint64_t c0 = counter0(S, p, a, n) + (uint64_t)i0;
+                    long k = S->soff[p] + a - s0;
+                    for (long c = 0; c < cn; c++)
+                        Z[k * CHUNK + c] = normal_at(key, c0 + (uint64_t)c) - zbar[k];
+                }
+            mr_backward(S, Z, kp, CHUNK, cn);
+            if (pass == 0) {
+                add_squares(Z, K, CHUNK, cn, ss);
+                continue;
             }
-        mr_backward(S, Z, kp, CHUNK, cn);
-        write_edges(P, S, Z, CHUNK, i0, cn, out, slot, n);
+            if (fac != NULL) scale(S, Z, CHUNK, cn, fac);
+            write_edges(P, S, Z, CHUNK, i0, cn, out, slot, n);
+        }
+        if (pass == 0) spread_factors(P, S, ss, n, spread, rot_cap, fac);
     }
     free(zbar);
     free(Z);

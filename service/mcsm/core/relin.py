@@ -25,7 +25,12 @@ from mcsm.errors import NumericalError
 Array = npt.NDArray[np.float64]
 Ints = npt.NDArray[np.int32]
 
-RELIN_VERSION = 1
+RELIN_VERSION = 2
+SPREAD_ROTATION_CAP = 0.3
+"""Radians: a redraw's ``spread`` is lowered for a pose whose rotation deviations would get an
+RMS above this (to this, never below the posterior itself): the chart and the filter's updates
+after the redraw degrade at such spreads (w10000, whose file gives every edge 1 rad, had
+updates refused at 0.43 rad)."""
 EXACT_MAX = 2048
 """Largest number of kept dimensions redrawn with an exact sample covariance (the whitening
 costs O(K² N + K³))."""
@@ -60,7 +65,7 @@ for _name, _args, _res in (
         ("mr_solve", (_P,), _I),
         ("mr_free", (_P,), None),
         ("mr_marginal", (_P, _P, _P), _I),
-        ("mr_redraw", (_P, _P, _P, _L, _U64, _L), _I),
+        ("mr_redraw", (_P, _P, _P, _L, _U64, _L, _D, _D), _I),
         ("mr_normals", (_U64, _U64, _L, _P), None)):
     _fn = getattr(_lib, _name)
     _fn.argtypes = list(_args)
@@ -208,13 +213,16 @@ class Solution:
         self.close()
 
     def redraw(self, out: Array, slot: npt.NDArray[np.int64], key: int,
-               exact_max: int = EXACT_MAX) -> None:
+               exact_max: int = EXACT_MAX, spread: float = 1.0) -> None:
         """Draw the kept variables into ``out`` ``(cap, 7, N)`` at ``slot[v]`` (-1: skip);
         with fewer kept dimensions than N (and at most ``exact_max``) the samples' covariance
-        is exactly the posterior's."""
+        is exactly the posterior's; ``spread`` multiplies every frame's deviations (its
+        covariance by ``spread**2``), less for a pose whose rotation deviations would exceed
+        :data:`SPREAD_ROTATION_CAP` RMS."""
         sl = np.ascontiguousarray(slot, dtype=np.int64)
         if _lib.mr_redraw(ctypes.byref(self._s), ptr(out), ptr(sl), out.shape[-1],
-                          key & (2**64 - 1), int(exact_max)) != OK:
+                          key & (2**64 - 1), int(exact_max), float(spread),
+                          SPREAD_ROTATION_CAP) != OK:
             raise NumericalError("the relinearisation's redraw failed")
 
     def marginal(self) -> tuple[Array, Array]:
