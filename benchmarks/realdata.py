@@ -72,6 +72,14 @@ def _recommended() -> dict[str, Any]:
     return RECOMMENDED.to_plain()
 
 
+def _default_policy() -> dict[str, Any]:
+    try:
+        from mcsm.core.smap import DEFAULT_POLICY
+    except ImportError:  # pragma: no cover - a build without relinearisation
+        return {}
+    return DEFAULT_POLICY.to_plain() if DEFAULT_POLICY is not None else {}
+
+
 BEFORE = {"gate_scale": None, "history": None, "relinearize": None}
 """The options before issue 22: the fixed 0.99 gate, no history, no relinearisation."""
 
@@ -81,6 +89,8 @@ CONFIGS: list[dict[str, Any]] = [
      "options": {"relinearize": _recommended()}},
     {"name": "mcsm repair only (regate 6, gap 25: the defaults before spread)",
      "options": {"relinearize": {"regate": 6, "gap": 25}}},
+    {"name": "mcsm defaults + recentre (a solve after every accepted closure)",
+     "options": {"relinearize": {**_default_policy(), "recentre": True}}},
     {"name": "mcsm defaults + relinearize() every 500 steps",
      "options": {}, "driver": {"method": "relinearize", "every": 500}},
     {"name": "mcsm repair only + readmit 300 (experiment, off by default)",

@@ -34,6 +34,8 @@ OPTION_SETS: dict[str, dict[str, object]] = {
     "relinearize often": {"relinearize": {"nis": 0.5, "every": 4, "gap": 2, "regate": 1,
                                           "spread": 1.3},
                           "gate_scale": {"window": 3, "open": 1.0, "max": 4.0}},
+    "recentre": {"relinearize": {"nis": 0.5, "gap": 2, "regate": 1, "spread": 1.3,
+                                 "recentre": True}},
 }
 
 

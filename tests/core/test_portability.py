@@ -111,4 +111,4 @@ def test_same_digests_with_the_installed_baseline_build(reference: dict[str, obj
 
 def test_every_option_set_changes_the_digest(reference: dict[str, object]) -> None:
     digests = [v for k, v in reference.items() if not k.endswith(".mcap")]
-    assert len(set(digests)) == len(digests) == 9  # 8 option sets and the --gate-defer run
+    assert len(set(digests)) == len(digests) == 10  # 9 option sets and the --gate-defer run

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from mcsm import StochasticMap
+from mcsm.errors import McsmError
 from mcsm.log.replay import replay
 from mcsm.serve.natsrun import NatsCluster
 from mcsm_client.cli import main as client_main
@@ -215,3 +216,10 @@ def test_the_serve_flags_give_the_default_policy_and_refuse_a_bad_spread(
     kept = policy(*off, "--relinearize-spread", "1.5")
     assert kept is not None and Policy.from_plain(kept) == Policy(gap=25, spread=1.5)
     assert policy("--history", "none") is None
+    # --relinearize-recentre alone keeps a policy; with --history none it is refused
+    rc = policy(*off, "--relinearize-spread", "1", "--relinearize-recentre")
+    assert rc is not None and Policy.from_plain(rc) == Policy(gap=25, recentre=True)
+    assert Policy.from_plain(policy("--relinearize-recentre") or {}) == \
+        Policy(nis=0.95, regate=1, gap=25, spread=1.3, recentre=True)
+    with pytest.raises(McsmError, match="needs a history"):
+        policy("--history", "none", "--relinearize-recentre")

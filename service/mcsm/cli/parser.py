@@ -148,6 +148,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="every relinearisation draws S x the posterior's deviations (1: the "
                         "posterior itself; at most 2; default %(default)s, "
                         "docs/relinearisation.md 'Redraw spread')")
+    s.add_argument("--relinearize-recentre", action="store_true", default=pol.recentre,
+                   help="after every accepted loop closure that was not followed by a "
+                        "relinearisation, solve its component and move its samples' means to "
+                        "the solution, keeping their deviations (one solve per closure; "
+                        "docs/relinearisation.md 'Re-centring')")
     s.add_argument("--record", type=Path, default=None, metavar="PATH.mcap",
                    help="new recording file (default recordings/run-<UTC time>.mcap)")
     s.add_argument("--restore", type=Path, nargs="+", default=None, metavar="PATH.mcap",

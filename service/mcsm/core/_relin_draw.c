@@ -161,6 +161,30 @@ void mr_means(const double *rows, const int64_t *idx, long k, long n, const uint
     }
 }
 
+/* Re-centre frames idx[0..k) of a component's buffer from their means mu (mr_means) on the
+ * poses tgt (both k x 7): t_i += t* - mean t and q_i <- (q* mean_q^-1) q_i, normalised, so
+ * every sample keeps its chart deviation [t_i - mean t, 2 vec(mean_q^-1 q_i)]. */
+void mr_recentre(double *rows, const int64_t *idx, long k, long n, const uint8_t *point,
+                 const double *mu, const double *tgt) {
+    for (long j = 0; j < k; j++) {
+        double *x = rows + idx[j] * 7 * n;
+        const double *m = mu + 7 * j, *t = tgt + 7 * j;
+        for (int c = 0; c < 3; c++) {
+            double d = t[c] - m[c];
+            for (long i = 0; i < n; i++) x[c * n + i] = x[c * n + i] + d;
+        }
+        if (point[j]) continue;
+        double mc[4] = {m[3], -m[4], -m[5], -m[6]}, dq[4];
+        mr_qmul(t + 3, mc, dq);
+        for (long i = 0; i < n; i++) {
+            double q[4] = {x[3 * n + i], x[4 * n + i], x[5 * n + i], x[6 * n + i]}, r[4];
+            mr_qmul(dq, q, r);
+            double s = sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2] + r[3] * r[3]);
+            for (int c = 0; c < 4; c++) x[(3 + c) * n + i] = r[c] / s;
+        }
+    }
+}
+
 /* Spread of frames idx[0..k) in each chart coordinate: max_i |v_i - v_0| of [t, 2 vec(m^-1 q)]
  * around the frame's chordal mean m (points: t only, the rest 0), k x 6. A coordinate in which
  * no sample differs from the first does not vary in the map (a planar map's z, qx, qy). */

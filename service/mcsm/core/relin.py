@@ -25,7 +25,7 @@ from mcsm.errors import NumericalError
 Array = npt.NDArray[np.float64]
 Ints = npt.NDArray[np.int32]
 
-RELIN_VERSION = 2
+RELIN_VERSION = 3
 SPREAD_ROTATION_CAP = 0.3
 """Radians: a redraw's ``spread`` is lowered for a pose whose rotation deviations would get an
 RMS above this (to this, never below the posterior itself): the chart and the filter's updates
@@ -60,6 +60,7 @@ for _name, _args, _res in (
         ("mr_problem_size", (), _L),
         ("mr_moments", (_P, _L, _I, _P, _P), _I),
         ("mr_means", (_P, _P, _L, _L, _P, _P), None),
+        ("mr_recentre", (_P, _P, _L, _L, _P, _P, _P), None),
         ("mr_spread", (_P, _P, _L, _L, _P, _P), None),
         ("mr_transform", (_P, _I, _P, _P, _L, _P), None),
         ("mr_solve", (_P,), _I),
@@ -96,6 +97,19 @@ def means(buf: Array, idx: npt.NDArray[np.int64], point: npt.NDArray[np.uint8]) 
         p = np.ascontiguousarray(point, dtype=np.uint8)
         _lib.mr_means(ptr(buf), ptr(i), len(i), buf.shape[-1], ptr(p), ptr(out))
     return out
+
+
+def recentre(buf: Array, idx: npt.NDArray[np.int64], point: npt.NDArray[np.uint8],
+             mu: Array, target: Array) -> None:
+    """Move frames ``idx`` of a component buffer ``(cap, 7, N)`` (in place) from their means
+    ``mu`` ``(k, 7)`` (:func:`means`) to ``target`` ``(k, 7)``, every sample keeping its chart
+    deviation from the mean."""
+    if len(idx):
+        i = np.ascontiguousarray(idx, dtype=np.int64)
+        p = np.ascontiguousarray(point, dtype=np.uint8)
+        m = np.ascontiguousarray(mu, dtype=np.float64)
+        t = np.ascontiguousarray(target, dtype=np.float64)
+        _lib.mr_recentre(ptr(buf), ptr(i), len(i), buf.shape[-1], ptr(p), ptr(m), ptr(t))
 
 
 def spread(buf: Array, idx: npt.NDArray[np.int64], point: npt.NDArray[np.uint8]) -> Array:
@@ -251,6 +265,7 @@ def solve(problem: Problem, *, max_iter: int = 20, tol: float = 1e-6) -> Solutio
     return Solution(problem, max_iter, tol)
 
 
-__all__ = ["Problem", "Solution", "SolveStats", "moments", "means", "spread", "transform",
+__all__ = ["Problem", "Solution", "SolveStats", "moments", "means", "recentre", "spread",
+           "transform",
            "normals",
            "solve", "RELIN_VERSION"]

@@ -94,6 +94,12 @@ class Policy:
         times ``spread**2``): an allowance for what the inputs' covariances leave out, which a
         filter's inflation gives it and an exact redraw takes away (docs/relinearisation.md,
         "Redraw spread")
+    recentre : after every accepted loop closure for which the map did not relinearise, solve its
+        component as a relinearisation does and move every frame's samples so that their mean
+        is the solution, each sample keeping the filter's deviation (no redraw; the other
+        triggers' counters do not change): the map's means stay at the maximum a posteriori
+        estimate between relinearisations, for one solve per closure (docs/relinearisation.md,
+        "Re-centring")
     """
 
     nis: float | None = None
@@ -102,6 +108,7 @@ class Policy:
     gap: int = 25
     readmit: int | None = None
     spread: float = 1.0
+    recentre: bool = False
 
     def __post_init__(self) -> None:
         if not (isinstance(self.spread, (int, float)) and not isinstance(self.spread, bool)
@@ -113,6 +120,9 @@ class Policy:
                                          and 0.0 < self.nis < 1.0):
             raise InvalidOperation(f"relinearise nis must be None or a quantile in (0, 1), "
                                    f"got {self.nis!r}")
+        if not isinstance(self.recentre, bool):
+            raise InvalidOperation(f"relinearise recentre must be true or false, "
+                                   f"got {self.recentre!r}")
         for name in ("every", "gap", "regate", "readmit"):
             v = getattr(self, name)
             if (v is not None or name == "gap") and not (
@@ -128,6 +138,8 @@ class Policy:
             d["readmit"] = self.readmit
         if self.spread != 1.0:  # likewise
             d["spread"] = float(self.spread)
+        if self.recentre:  # likewise
+            d["recentre"] = True
         return d
 
     @classmethod
@@ -135,10 +147,11 @@ class Policy:
         nis, every, regate = d.get("nis"), d.get("every"), d.get("regate")
         if isinstance(regate, bool):  # True: at every failure
             regate = 1 if regate else None
-        readmit = d.get("readmit")
+        readmit, recentre = d.get("readmit"), d.get("recentre")
         return cls(None if nis is None else float(nis), None if every is None else int(every),
                    None if regate is None else int(regate), int(d.get("gap", 1)),
-                   None if readmit is None else int(readmit), d.get("spread", 1.0))
+                   None if readmit is None else int(readmit), d.get("spread", 1.0),
+                   bool(recentre))
 
 
 @dataclass(frozen=True)
@@ -261,9 +274,9 @@ def active_coordinates(rows: Array, flags: npt.NDArray[np.uint8]) -> tuple[int, 
 
 
 def _problem(smap: Relinearizable, h: FactorHistory, cid: int, ids: npt.NDArray[np.int64],
-             fmask: npt.NDArray[np.bool_], priors: list[Prior], kept: npt.NDArray[np.uint8]
-             ) -> relin.Problem:
-    rows, flags = host_rows(smap, cid)
+             fmask: npt.NDArray[np.bool_], priors: list[Prior], kept: npt.NDArray[np.uint8],
+             host: tuple[Array, npt.NDArray[np.uint8]] | None = None) -> relin.Problem:
+    rows, flags = host_rows(smap, cid) if host is None else host
     local = np.full(h.vars.n, -1, dtype=np.int64)
     local[ids] = np.arange(len(ids))
     root = h.var_of[smap._comps[cid].root]
@@ -375,6 +388,41 @@ def relinearize_component(smap: Relinearizable, cid: int, *, readmit_only: bool 
                           readmitted=readmitted)
 
 
+def recentre_component(smap: Relinearizable, cid: int) -> ComponentRelin:
+    """Solve component ``cid`` as :func:`relinearize_component` does, then move every frame's
+    samples so that their mean in the chart is the solution, each keeping its deviation: the
+    filter's covariance and cross-correlations stay, its mean becomes the maximum a posteriori
+    estimate (ensemble-variational re-centring). The counters of the other triggers do not
+    change. A skipped component changes nothing; a failure raises and changes nothing."""
+    c = smap._comps[cid]
+    reason = why_not(smap, cid)
+    if reason:
+        return ComponentRelin(c.root, skipped=reason)
+    h = smap.factor_history
+    assert h is not None
+    ids = h.group_vars(cid)
+    fmask = h.vars["group"][h.factors["vars"][:, 0]] == cid
+    gset = set(ids.tolist())
+    priors = [p for p in h.priors if int(p.vars[0]) in gset]
+    kept = h.vars["alive"][ids].astype(np.uint8)
+    rows, flags = host_rows(smap, cid)
+    prob = _problem(smap, h, cid, ids, fmask, priors, kept, (rows, flags))
+    with relin.solve(prob, max_iter=MAX_ITERATIONS, tol=TOLERANCE) as sol:
+        st = sol.stats
+    alive = np.flatnonzero(kept)
+    slot = np.array([c.index[h.frame_of[int(v)]] for v in ids[alive]], dtype=np.int64)
+    moved = slot != 0  # the root's edge is the identity
+    slot, target = slot[moved], prob.x[alive][moved]
+    relin.recentre(rows, slot, flags[slot], relin.means(rows, slot, flags[slot]), target)
+    if kernel.canonicalize_frames(rows, flags, 1, len(c), False) != kernel.OK or \
+            not np.isfinite(rows).all():
+        raise NumericalError("the re-centring produced non-finite samples")
+    replace_rows(smap, cid, rows)
+    h.vars["est"][ids] = relin.transform(h.groups[cid].world, prob.x, prob.vkind)
+    return ComponentRelin(c.root, len(c), len(ids), int(np.count_nonzero(fmask)) + len(priors),
+                          st.iterations, st.cost_before, st.cost_after, st.trimmed)
+
+
 def _admissible(h: FactorHistory, ids: npt.NDArray[np.int64], cand: npt.NDArray[np.int64],
                 prob: relin.Problem) -> npt.NDArray[np.int64]:
     """The refused closures (rows ``cand`` of the history's pending table) whose chi-square
@@ -441,7 +489,8 @@ def relinearize(smap: Relinearizable, cids: list[int], trigger: str) -> RelinRep
     comps = []
     for cid in cids:
         try:
-            comps.append(relinearize_component(smap, cid, readmit_only=trigger == "readmit"))
+            comps.append(recentre_component(smap, cid) if trigger == "recentre" else
+                         relinearize_component(smap, cid, readmit_only=trigger == "readmit"))
         except McsmError as exc:
             comps.append(ComponentRelin(smap._comps[cid].root,
                                         skipped=f"failed: {type(exc).__name__}: {exc}"))

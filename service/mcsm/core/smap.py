@@ -437,7 +437,10 @@ class StochasticMap(Forest):
                 left[h.pending_of(cid)] = False
                 h.pending.keep(left)
                 # a solve that admitted nothing left the map as it was: nothing to report
-                return report if any(c.readmitted for c in report.components) else None
+                if any(c.readmitted for c in report.components):
+                    return report
+        if p.recentre and r.kind == "loop_closure":
+            return relinearize(self, [cid], "recentre")
         return None
 
     def _can_regate(self, cid: int, trusted: bool) -> bool:
