@@ -216,6 +216,30 @@ def test_every_message_validates_against_its_schema() -> None:
         Draft202012Validator(_schema(name)).validate(_jsonable(msgpack.unpackb(payload)))
 
 
+def test_every_relinearisation_report_validates_against_the_ack_schema() -> None:
+    """Every trigger a map can report (the policy's recentre and readmit included) and the
+    readmitted count, from real maps' reports."""
+    from mcsm import StochasticMap
+    from mcsm.core.relinearize import Policy
+
+    v = Draft202012Validator(_schema("ack.json"))
+    n, rng = 40, np.random.default_rng(5)
+    reports = []
+    for pol in (Policy(recentre=True), Policy(every=2, gap=1)):
+        m = StochasticMap(n, gate=None, relinearize=pol)
+        for k in range(4):
+            reports.append(m.update(f"x{k}", f"x{k + 1}", good_samples(n)).relin)
+        reports.append(m.update("x0", "x4", m.query("x0", "x4")[rng.permutation(n)]).relin)
+    reports.append(m.relinearize())
+    done = [r.to_dict() for r in reports if r is not None]
+    assert {d["trigger"] for d in done} == {"recentre", "every", "request"}
+    readmitted = {**done[-1], "trigger": "readmit"}
+    readmitted["components"] = [{**done[-1]["components"][0], "readmitted": 2}]
+    for relin in [*done, readmitted]:
+        ack = wire.encode_ack(wire.Ack("i", 1, "update", "loop_closure", "w", (), relin=relin))
+        v.validate(_jsonable(msgpack.unpackb(ack)))
+
+
 def test_schemas_reject_what_the_codec_rejects() -> None:
     v = Draft202012Validator(_schema("update_request.json"))
     good = _jsonable(msgpack.unpackb(wire.encode_update("i", "w", "r", good_samples(3))))

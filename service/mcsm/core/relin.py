@@ -29,7 +29,7 @@ RELIN_VERSION = 3
 SPREAD_ROTATION_CAP = 0.3
 """Radians: a redraw's ``spread`` is lowered for a pose whose rotation deviations would get an
 RMS above this (to this, never below the posterior itself): the chart and the filter's updates
-after the redraw degrade at such spreads (w10000, whose file gives every edge 1 rad, had
+after the redraw degrade at such spreads (w10000, whose far poses' rotation RMS exceeds it, had
 updates refused at 0.43 rad)."""
 EXACT_MAX = 2048
 """Largest number of kept dimensions redrawn with an exact sample covariance (the whitening

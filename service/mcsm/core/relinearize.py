@@ -33,7 +33,7 @@ from mcsm.core import kernel, relin
 from mcsm.core.factors import IDENTITY, FactorHistory, Prior
 from mcsm.core.forest import Store
 from mcsm.core.gate import chi2_quantile
-from mcsm.core.storage import to_rows
+from mcsm.core.storage import Component, to_rows
 from mcsm.errors import InvalidOperation, McsmError, NumericalError
 
 Array = npt.NDArray[np.float64]
@@ -405,19 +405,29 @@ def recentre_component(smap: Relinearizable, cid: int) -> ComponentRelin:
     gset = set(ids.tolist())
     priors = [p for p in h.priors if int(p.vars[0]) in gset]
     kept = h.vars["alive"][ids].astype(np.uint8)
-    rows, flags = host_rows(smap, cid)
+    host = isinstance(c, Component)  # read in place; else a host copy, uploaded after
+    rows, flags = (c.rows, c.point_flags) if host else host_rows(smap, cid)
     prob = _problem(smap, h, cid, ids, fmask, priors, kept, (rows, flags))
+    start = prob.x.copy()  # the frames' means (estimates)
     with relin.solve(prob, max_iter=MAX_ITERATIONS, tol=TOLERANCE) as sol:
         st = sol.stats
     alive = np.flatnonzero(kept)
     slot = np.array([c.index[h.frame_of[int(v)]] for v in ids[alive]], dtype=np.int64)
     moved = slot != 0  # the root's edge is the identity
-    slot, target = slot[moved], prob.x[alive][moved]
-    relin.recentre(rows, slot, flags[slot], relin.means(rows, slot, flags[slot]), target)
-    if kernel.canonicalize_frames(rows, flags, 1, len(c), False) != kernel.OK or \
-            not np.isfinite(rows).all():
+    slot = slot[moved]
+    out = rows
+    if host:  # into the spare buffer, swapped in after the checks (as the joint update)
+        buf, spare = c.buffer, smap._spare
+        out = spare if spare is not None and spare.shape == buf.shape else np.empty_like(buf)
+        out[: len(c)] = buf[: len(c)]
+    relin.recentre(out, slot, flags[slot], start[alive][moved], prob.x[alive][moved])
+    if kernel.canonicalize_frames(out, flags, 1, len(c), False) != kernel.OK or \
+            not np.isfinite(out[: len(c)]).all():
         raise NumericalError("the re-centring produced non-finite samples")
-    replace_rows(smap, cid, rows)
+    if host:
+        smap._spare = c.swap_buffer(out)
+    else:
+        replace_rows(smap, cid, out)
     h.vars["est"][ids] = relin.transform(h.groups[cid].world, prob.x, prob.vkind)
     return ComponentRelin(c.root, len(c), len(ids), int(np.count_nonzero(fmask)) + len(priors),
                           st.iterations, st.cost_before, st.cost_after, st.trimmed)
