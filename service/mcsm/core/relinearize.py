@@ -405,8 +405,8 @@ def recentre_component(smap: Relinearizable, cid: int) -> ComponentRelin:
     gset = set(ids.tolist())
     priors = [p for p in h.priors if int(p.vars[0]) in gset]
     kept = h.vars["alive"][ids].astype(np.uint8)
-    host = isinstance(c, Component)  # read in place; else a host copy, uploaded after
-    rows, flags = (c.rows, c.point_flags) if host else host_rows(smap, cid)
+    # a component in host memory is read in place; else from a host copy, uploaded after
+    rows, flags = (c.rows, c.point_flags) if isinstance(c, Component) else host_rows(smap, cid)
     prob = _problem(smap, h, cid, ids, fmask, priors, kept, (rows, flags))
     start = prob.x.copy()  # the frames' means (estimates)
     with relin.solve(prob, max_iter=MAX_ITERATIONS, tol=TOLERANCE) as sol:
@@ -416,7 +416,7 @@ def recentre_component(smap: Relinearizable, cid: int) -> ComponentRelin:
     moved = slot != 0  # the root's edge is the identity
     slot = slot[moved]
     out = rows
-    if host:  # into the spare buffer, swapped in after the checks (as the joint update)
+    if isinstance(c, Component):  # into the spare buffer, swapped in after the checks
         buf, spare = c.buffer, smap._spare
         out = spare if spare is not None and spare.shape == buf.shape else np.empty_like(buf)
         out[: len(c)] = buf[: len(c)]
@@ -424,7 +424,7 @@ def recentre_component(smap: Relinearizable, cid: int) -> ComponentRelin:
     if kernel.canonicalize_frames(out, flags, 1, len(c), False) != kernel.OK or \
             not np.isfinite(out[: len(c)]).all():
         raise NumericalError("the re-centring produced non-finite samples")
-    if host:
+    if isinstance(c, Component):
         smap._spare = c.swap_buffer(out)
     else:
         replace_rows(smap, cid, out)
