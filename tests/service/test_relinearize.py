@@ -38,10 +38,13 @@ OPTS = ("--samples", str(N), "--snapshot-every", "4", "--snapshots-kept", "8",
 Op = tuple[str, str, str, str, "np.ndarray | None", bool]  # id, kind, a, b, samples, trusted
 
 
-def _inputs(rng: np.random.Generator) -> list[Op]:
+RECENTRE = {**POLICY, "recentre": True}
+
+
+def _inputs(rng: np.random.Generator, policy: dict[str, object]) -> list[Op]:
     """A chain with landmarks, true closures, a wrong closure forced in, and relinearize
     requests (one of the whole map, one of a component) after it."""
-    local = StochasticMap(N, relinearize=POLICY)
+    local = StochasticMap(N, relinearize=policy)
     ops: list[Op] = []
 
     def add(op: Op) -> None:
@@ -94,29 +97,35 @@ def _send(c: MapClient, op: Op) -> None:
         assert all(d["skipped"] == "" and d["iterations"] >= 1 for d in ack.relin["components"])
 
 
-def _fresh(ops: list[Op], skip: str = "") -> StochasticMap:
-    m = StochasticMap(N, relinearize=POLICY)
+def _fresh(ops: list[Op], skip: str = "", policy: dict[str, object] = POLICY) -> StochasticMap:
+    m = StochasticMap(N, relinearize=policy)
     for op in ops:
         if op[0] != skip:
             _apply(m, op)
     return m
 
 
+@pytest.mark.parametrize("policy", [POLICY, RECENTRE], ids=["policy", "recentre"])
 def test_retract_replay_and_restore_through_relinearisations(
-        tmp_path: Path, daemons: list[Daemon], capsys: pytest.CaptureFixture[str]) -> None:
-    ops = _inputs(np.random.default_rng(20261210))
-    d = start_daemon(tmp_path, *OPTS)
+        tmp_path: Path, daemons: list[Daemon], capsys: pytest.CaptureFixture[str],
+        policy: dict[str, object]) -> None:
+    """With the policy (and with re-centring after every closure too): retract and reinstate
+    across relinearisations, replay, replay from a snapshot and --restore all give the map
+    that the same inputs give in process."""
+    ops = _inputs(np.random.default_rng(20261210), policy)
+    opts = (*OPTS, "--relinearize-recentre") if policy.get("recentre") else OPTS
+    d = start_daemon(tmp_path, *opts)
     daemons.append(d)
     rng = np.random.default_rng(5)
     with MapClient(connect=d.endpoint, timeout_s=20.0) as c:
         for op in ops:
             _send(c, op)
         with_wrong = c.info().digest
-        assert with_wrong == _fresh(ops).state_digest()
+        assert with_wrong == _fresh(ops, policy=policy).state_digest()
         # retract an input from before both relinearize requests and several automatic
         # relinearisations: the map is the one that never had it
         assert c.retract("wrong").verdict.status == "retracted"  # type: ignore[union-attr]
-        assert c.info().digest == _fresh(ops, skip="wrong").state_digest() != with_wrong
+        assert c.info().digest == _fresh(ops, "wrong", policy).state_digest() != with_wrong
         assert c.reinstate("wrong").verdict.status == "reinstated"  # type: ignore[union-attr]
         assert c.info().digest == with_wrong
         tail: list[Op] = [
@@ -126,14 +135,14 @@ def test_retract_replay_and_restore_through_relinearisations(
         for op in tail:
             _send(c, op)
         final = c.info()
-    local = _fresh(ops + tail)
+    local = _fresh(ops + tail, policy=policy)
     assert final.digest == local.state_digest()
     assert d.stop(signal.SIGKILL) != 0
     full, fast = replay(d.record), replay(d.record, from_snapshot=True)
     assert full.divergence is None and full.final_digests()["default"] == final.digest
     assert fast.divergence is None and fast.snapshots_loaded == 1 and fast.n_inputs == 2
     assert fast.states["default"].digest() == final.digest
-    d2 = start_daemon(tmp_path, *OPTS, "--restore", str(d.record), name="d2",
+    d2 = start_daemon(tmp_path, *opts, "--restore", str(d.record), name="d2",
                       listen_on=d.endpoint)
     daemons.append(d2)
     with MapClient(connect=d2.endpoint, timeout_s=20.0) as c:
@@ -154,7 +163,7 @@ def test_a_standby_follows_relinearisations(tmp_path: Path, daemons: list[Daemon
     standby that joins late (catching up from the map's NATS log) and then follows live holds
     the primary's digest; after the primary's SIGKILL it takes over with that digest and
     relinearises on request itself."""
-    ops = _inputs(np.random.default_rng(20261211))
+    ops = _inputs(np.random.default_rng(20261211), POLICY)
     router, ep = start_router(tmp_path)
     repl = ("--samples", str(N), "--connect", ep, "--nats", ",".join(nats.urls),
             "--relinearize-nis", "0.95", "--relinearize-every", "6", "--relinearize-gap", "3",
