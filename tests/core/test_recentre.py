@@ -112,3 +112,40 @@ def test_recentring_replays_through_a_snapshot() -> None:
         return m.state_digest()
 
     assert run(False) == run(True) == run(False)
+
+
+def test_recentring_readmits_a_refused_closure_once_the_map_agrees_with_it() -> None:
+    """With ``readmit``, every re-centring re-checks the component's refused closures at its
+    solution: a closure refused against the odometry alone is admitted (``readmitted`` 1 in
+    the report, once) after a trusted closure moved the map to agree with it, and the map's
+    means are then the exact posterior of all inputs, the admitted one included."""
+    n = 400
+    m = StochasticMap(n, relinearize=Policy(recentre=True, readmit=50))
+    rng = np.random.default_rng(8)
+    inputs = []
+    for k in range(4):
+        x = translation_samples(rng, n, [1, 0, 0], 0.05)
+        inputs.append((f"x{k}", f"x{k + 1}", x))
+        m.update(f"x{k}", f"x{k + 1}", x)
+    far = translation_samples(rng, n, [4.0, 1.5, 0], 0.05)  # 1.5 m off the odometry's y
+    r = m.update("x0", "x4", far)
+    assert r.kind == "rejected" and r.relin is None
+    agree = translation_samples(rng, n, [4.0, 1.5, 0], 0.005)  # tight: the map goes there
+    r = m.update("x0", "x4", agree, trusted=True)
+    assert r.kind == "loop_closure" and r.relin is not None
+    assert r.relin.trigger == "recentre" and r.relin.components[0].readmitted == 1
+    inputs += [("x0", "x4", far), ("x0", "x4", agree)]
+    got = np.concatenate([m.query("x0", f"x{k}")[:, :3] for k in (1, 2, 3, 4)], axis=1)
+    idx = {f"x{k}": k - 1 for k in range(1, 5)}
+    h, g = np.zeros((12, 12)), np.zeros(12)
+    for a, b, x in inputs:
+        w = np.linalg.inv(np.cov(x[:, :3].T))
+        rr = np.zeros((3, 12))
+        if a in idx:
+            rr[:, 3 * idx[a]: 3 * idx[a] + 3] = -np.eye(3)
+        rr[:, 3 * idx[b]: 3 * idx[b] + 3] = np.eye(3)
+        h += rr.T @ w @ rr
+        g += rr.T @ w @ x[:, :3].mean(axis=0)
+    assert np.max(np.abs(got.mean(axis=0) - np.linalg.solve(h, g))) < 1e-9
+    r = m.update("x1", "x4", m.query("x1", "x4")[rng.permutation(n)])
+    assert r.relin is not None and r.relin.components[0].readmitted == 0  # admitted once

@@ -33,7 +33,7 @@ from mcsm.core import kernel, relin
 from mcsm.core.factors import IDENTITY, FactorHistory, Prior
 from mcsm.core.forest import Store
 from mcsm.core.gate import chi2_quantile
-from mcsm.core.storage import Component, to_rows
+from mcsm.core.storage import to_rows
 from mcsm.errors import InvalidOperation, McsmError, NumericalError
 
 Array = npt.NDArray[np.float64]
@@ -98,7 +98,9 @@ class Policy:
         component as a relinearisation does and move every frame's samples so that their mean
         is the solution, each sample keeping the filter's deviation (no redraw; the other
         triggers' counters do not change): the map's means stay at the maximum a posteriori
-        estimate between relinearisations, for one solve per closure (docs/relinearisation.md,
+        estimate between relinearisations, for one solve per closure; with ``readmit`` each
+        re-centring also admits the component's refused closures it now agrees with (and the
+        calm-time check is not needed) (:mod:`mcsm.core.recentre`; docs/relinearisation.md,
         "Re-centring")
     """
 
@@ -388,51 +390,6 @@ def relinearize_component(smap: Relinearizable, cid: int, *, readmit_only: bool 
                           readmitted=readmitted)
 
 
-def recentre_component(smap: Relinearizable, cid: int) -> ComponentRelin:
-    """Solve component ``cid`` as :func:`relinearize_component` does, then move every frame's
-    samples so that their mean in the chart is the solution, each keeping its deviation: the
-    filter's covariance and cross-correlations stay, its mean becomes the maximum a posteriori
-    estimate (ensemble-variational re-centring). The counters of the other triggers do not
-    change. A skipped component changes nothing; a failure raises and changes nothing."""
-    c = smap._comps[cid]
-    reason = why_not(smap, cid)
-    if reason:
-        return ComponentRelin(c.root, skipped=reason)
-    h = smap.factor_history
-    assert h is not None
-    ids = h.group_vars(cid)
-    fmask = h.vars["group"][h.factors["vars"][:, 0]] == cid
-    gset = set(ids.tolist())
-    priors = [p for p in h.priors if int(p.vars[0]) in gset]
-    kept = h.vars["alive"][ids].astype(np.uint8)
-    # a component in host memory is read in place; else from a host copy, uploaded after
-    rows, flags = (c.rows, c.point_flags) if isinstance(c, Component) else host_rows(smap, cid)
-    prob = _problem(smap, h, cid, ids, fmask, priors, kept, (rows, flags))
-    start = prob.x.copy()  # the frames' means (estimates)
-    with relin.solve(prob, max_iter=MAX_ITERATIONS, tol=TOLERANCE) as sol:
-        st = sol.stats
-    alive = np.flatnonzero(kept)
-    slot = np.array([c.index[h.frame_of[int(v)]] for v in ids[alive]], dtype=np.int64)
-    moved = slot != 0  # the root's edge is the identity
-    slot = slot[moved]
-    out = rows
-    if isinstance(c, Component):  # into the spare buffer, swapped in after the checks
-        buf, spare = c.buffer, smap._spare
-        out = spare if spare is not None and spare.shape == buf.shape else np.empty_like(buf)
-        out[: len(c)] = buf[: len(c)]
-    relin.recentre(out, slot, flags[slot], start[alive][moved], prob.x[alive][moved])
-    if kernel.canonicalize_frames(out, flags, 1, len(c), False) != kernel.OK or \
-            not np.isfinite(out[: len(c)]).all():
-        raise NumericalError("the re-centring produced non-finite samples")
-    if isinstance(c, Component):
-        smap._spare = c.swap_buffer(out)
-    else:
-        replace_rows(smap, cid, out)
-    h.vars["est"][ids] = relin.transform(h.groups[cid].world, prob.x, prob.vkind)
-    return ComponentRelin(c.root, len(c), len(ids), int(np.count_nonzero(fmask)) + len(priors),
-                          st.iterations, st.cost_before, st.cost_after, st.trimmed)
-
-
 def _admissible(h: FactorHistory, ids: npt.NDArray[np.int64], cand: npt.NDArray[np.int64],
                 prob: relin.Problem) -> npt.NDArray[np.int64]:
     """The refused closures (rows ``cand`` of the history's pending table) whose chi-square
@@ -499,8 +456,7 @@ def relinearize(smap: Relinearizable, cids: list[int], trigger: str) -> RelinRep
     comps = []
     for cid in cids:
         try:
-            comps.append(recentre_component(smap, cid) if trigger == "recentre" else
-                         relinearize_component(smap, cid, readmit_only=trigger == "readmit"))
+            comps.append(relinearize_component(smap, cid, readmit_only=trigger == "readmit"))
         except McsmError as exc:
             comps.append(ComponentRelin(smap._comps[cid].root,
                                         skipped=f"failed: {type(exc).__name__}: {exc}"))

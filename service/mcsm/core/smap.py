@@ -37,6 +37,7 @@ from mcsm.core.forest import (
 )
 from mcsm.core.gate import chi2_quantile
 from mcsm.core.paper import paper_update, paper_update_tangent
+from mcsm.core.recentre import recentre
 from mcsm.core.relinearize import (
     DEFAULT_HISTORY_BYTES,
     REGATE_WINDOW,
@@ -429,7 +430,7 @@ class StochasticMap(Forest):
             return relinearize(self, [cid], "every")
         if p.readmit is not None:
             h.age_pending(p.readmit)
-            if (r.kind == "loop_closure" and g.since >= p.gap
+            if (r.kind == "loop_closure" and g.since >= p.gap and not p.recentre
                     and len(self._gate_fail) == REGATE_WINDOW and not any(self._gate_fail)
                     and len(h.pending_of(cid))):
                 report = relinearize(self, [cid], "readmit")
@@ -440,7 +441,7 @@ class StochasticMap(Forest):
                 if any(c.readmitted for c in report.components):
                     return report
         if p.recentre and r.kind == "loop_closure":
-            return relinearize(self, [cid], "recentre")
+            return recentre(self, [cid])
         return None
 
     def _can_regate(self, cid: int, trusted: bool) -> bool:
