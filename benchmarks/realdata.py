@@ -91,6 +91,8 @@ CONFIGS: list[dict[str, Any]] = [
      "options": {"relinearize": {"regate": 6, "gap": 25}}},
     {"name": "mcsm defaults + recentre (a solve after every accepted closure)",
      "options": {"relinearize": {**_default_policy(), "recentre": True}}},
+    {"name": "mcsm defaults + recentre + readmit 300 (refused closures re-checked at every solve)",
+     "options": {"relinearize": {**_default_policy(), "recentre": True, "readmit": 300}}},
     {"name": "mcsm defaults + relinearize() every 500 steps",
      "options": {}, "driver": {"method": "relinearize", "every": 500}},
     {"name": "mcsm repair only + readmit 300 (experiment, off by default)",
