@@ -232,3 +232,7 @@ def test_the_serve_flags_give_the_default_policy_and_refuse_a_bad_spread(
         Policy(nis=0.95, regate=1, gap=25, spread=1.3, recentre=True)
     with pytest.raises(McsmError, match="needs a history"):
         policy("--history", "none", "--relinearize-recentre")
+    both = policy("--relinearize-recentre", "--relinearize-readmit", "300")
+    assert Policy.from_plain(both or {}) == Policy(nis=0.95, regate=1, gap=25, spread=1.3,
+                                                   recentre=True, readmit=300)
+    assert (policy() or {}).get("readmit", "missing") is None  # off unless asked for

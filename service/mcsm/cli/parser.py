@@ -153,6 +153,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "relinearisation, solve its component and move its samples' means to "
                         "the solution, keeping their deviations (one solve per closure; "
                         "docs/relinearisation.md 'Re-centring')")
+    s.add_argument("--relinearize-readmit", type=_every, default=pol.readmit, metavar="K|none",
+                   help="keep the loop closures the gate refused within the last K inputs and "
+                        "admit those a later solve agrees with (with --relinearize-recentre: "
+                        "at every closure; default %(default)s)")
     s.add_argument("--record", type=Path, default=None, metavar="PATH.mcap",
                    help="new recording file (default recordings/run-<UTC time>.mcap)")
     s.add_argument("--restore", type=Path, nargs="+", default=None, metavar="PATH.mcap",
