@@ -149,3 +149,78 @@ def test_recentring_readmits_a_refused_closure_once_the_map_agrees_with_it() -> 
     assert np.max(np.abs(got.mean(axis=0) - np.linalg.solve(h, g))) < 1e-9
     r = m.update("x1", "x4", m.query("x1", "x4")[rng.permutation(n)])
     assert r.relin is not None and r.relin.components[0].readmitted == 0  # admitted once
+
+
+def _buffer(rng: np.random.Generator, frames: int, n: int, planar: bool) -> np.ndarray:
+    """A component buffer ``(frames + 2, 7, n)`` (two spare rows) of random poses: planar ones
+    (z, qx, qy exactly 0) or 3-D ones."""
+    buf = np.zeros((frames + 2, 7, n))
+    buf[:, :2] = rng.normal(size=(frames + 2, 2, n))
+    yaw = rng.normal(size=(frames + 2, n))
+    buf[:, 3], buf[:, 6] = np.cos(yaw / 2), np.sin(yaw / 2)
+    if not planar:
+        buf[:, 2] = rng.normal(size=(frames + 2, n))
+        q = rng.normal(size=(frames + 2, 4, n))
+        buf[:, 3:] = q / np.linalg.norm(q, axis=1, keepdims=True)
+    return buf
+
+
+@pytest.mark.parametrize("planar", [True, False])
+def test_the_active_coordinates_follow_their_definition(planar: bool) -> None:
+    """``relin.active`` (early exit, charts only where they can change the answer) gives the
+    masks of its definition (``relin.spread``: a coordinate is active when a frame's samples
+    differ from the first in it), also with frames held in some coordinates and points."""
+    from mcsm.core import relin
+
+    rng = np.random.default_rng(7)
+    buf = _buffer(rng, 12, 33, planar)
+    buf[3, 0] = buf[3, 0, 0]  # frame 3 holds x: others still vary in it
+    buf[5, 1:3] = 1.5  # a point, pinned rotation; y and z held
+    buf[5, 3:] = [[1.0], [0.0], [0.0], [0.0]]
+    flags = np.zeros(len(buf), dtype=np.uint8)
+    flags[5] = 1
+
+    def reference(idx: np.ndarray) -> tuple[int, int]:
+        sp = relin.spread(buf, idx, flags[idx])
+        masks = []
+        for point, width in ((False, 6), (True, 3)):
+            sel = flags[idx].astype(bool) == point
+            live = np.any(sp[sel] > 0.0, axis=0)[:width] if np.any(sel) else np.ones(width, bool)
+            masks.append(int(sum(1 << k for k in range(width) if live[k])))
+        return masks[0], masks[1]
+
+    for idx in ([1, 2, 3, 4, 5], [5], [3], [4, 3], list(range(1, 12)), []):
+        i = np.asarray(idx, dtype=np.int64)
+        assert relin.active(buf, i, flags[i]) == reference(i), idx
+    held = buf.copy()
+    held[:, 1] = 0.25  # no frame varies in y
+    buf = held
+    i = np.arange(1, 12, dtype=np.int64)
+    assert relin.active(buf, i, flags[i]) == reference(i)
+    assert not relin.active(buf, i, flags[i])[0] & 0b10
+
+
+def test_the_recentring_kernel_gives_the_same_bits_copied_or_in_place() -> None:
+    """``relin.recentre`` into another buffer (a host component: the spare) equals the same
+    call in place (a host copy of a device component), and frames it does not move are copied
+    unchanged but canonicalised."""
+    from mcsm.core import kernel, relin
+
+    rng = np.random.default_rng(8)
+    src = _buffer(rng, 9, 41, planar=False)
+    flags = np.zeros(len(src), dtype=np.uint8)
+    idx = np.array([2, 4, 5, 7], dtype=np.int64)
+    mu = relin.means(src, idx, flags[idx])
+    target = mu + rng.normal(scale=0.1, size=mu.shape)
+    target[:, 3:] /= np.linalg.norm(target[:, 3:], axis=1, keepdims=True)
+    out = np.full_like(src, np.nan)
+    assert relin.recentre(src, out, 9, flags, idx, mu, target) == relin.OK
+    inplace = src.copy()
+    assert relin.recentre(inplace, inplace, 9, flags, idx, mu, target) == relin.OK
+    assert np.array_equal(out[:9], inplace[:9])
+    np.testing.assert_allclose(relin.means(out, idx, flags[idx]), target, atol=1e-12)
+    plain = src.copy()
+    assert kernel.canonicalize_frames(plain, flags, 1, 9, False) == kernel.OK
+    rest = [f for f in range(9) if f not in idx]
+    assert np.array_equal(out[rest], plain[rest])
+    assert np.isnan(out[9:]).all()  # rows past the component's length are not written

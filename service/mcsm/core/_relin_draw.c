@@ -16,6 +16,7 @@
 #include <string.h>
 
 #include "_relin.h"
+#include "kernel_common.h"
 
 #define ZERO_VARIANCE 1e-20
 #define RTOL 1e-9
@@ -161,31 +162,109 @@ void mr_means(const double *rows, const int64_t *idx, long k, long n, const uint
     }
 }
 
-/* Re-centre frames idx[0..k) of a component's buffer from their means mu (mr_means) on the
- * poses tgt (both k x 7): t_i += t* - mean t and q_i <- (q* mean_q^-1) q_i, normalised, so
- * every sample keeps its chart deviation [t_i - mean t, 2 vec(mean_q^-1 q_i)]. */
-void mr_recentre(double *rows, const int64_t *idx, long k, long n, const uint8_t *point,
-                 const double *mu, const double *tgt) {
-    for (long j = 0; j < k; j++) {
-        double *x = rows + idx[j] * 7 * n;
-        const double *m = mu + 7 * j, *t = tgt + 7 * j;
-        for (int c = 0; c < 3; c++) {
-            double d = t[c] - m[c];
-            for (long i = 0; i < n; i++) x[c * n + i] = x[c * n + i] + d;
+void mk_canonicalize(double *x, long n, int normalize);  /* _kernel.c */
+
+/* Frames 0..len-1 of a component's buffer src copied to dst (the same buffer, or one of the
+ * same shape), frames idx[0..k) (never the root, 0) moved from their means mu (mr_means) onto
+ * the poses tgt (both k x 7) on the way: t_i += t* - mean t and q_i <- (q* mean_q^-1) q_i,
+ * normalised, so every sample keeps its chart deviation [t_i - mean t, 2 vec(mean_q^-1 q_i)].
+ * Frames 1..len-1 are then canonicalised as the kernel does (points pinned). MR_NONFINITE if a
+ * value is not finite afterwards (dst is then partly written). */
+int mr_recentre(const double *src, double *dst, long len, long n, const uint8_t *point,
+                const int64_t *idx, long k, const double *mu, const double *tgt) {
+    long *which = malloc(sizeof(long) * (size_t)(len ? len : 1));
+    if (which == NULL) return MR_NO_MEMORY;
+    for (long f = 0; f < len; f++) which[f] = -1;
+    for (long j = 0; j < k; j++) which[idx[j]] = j;
+    int rc = MR_OK;
+    for (long f = 0; f < len && rc == MR_OK; f++) {
+        const double *x = src + f * 7 * n;
+        double *o = dst + f * 7 * n;
+        long j = which[f];
+        if (j < 0 || f == 0) {
+            if (o != x) memcpy(o, x, sizeof(double) * 7 * (size_t)n);
+        } else {
+            const double *m = mu + 7 * j, *t = tgt + 7 * j;
+            for (int c = 0; c < 3; c++) {
+                double d = t[c] - m[c];
+                for (long i = 0; i < n; i++) o[c * n + i] = x[c * n + i] + d;
+            }
+            if (point[f]) {
+                if (o != x) memcpy(o + 3 * n, x + 3 * n, sizeof(double) * 4 * (size_t)n);
+            } else {
+                double mc[4] = {m[3], -m[4], -m[5], -m[6]}, dq[4];
+                mr_qmul(t + 3, mc, dq);
+                for (long i = 0; i < n; i++) {
+                    double q[4] = {x[3 * n + i], x[4 * n + i], x[5 * n + i], x[6 * n + i]}, r[4];
+                    mr_qmul(dq, q, r);
+                    double s = sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2] + r[3] * r[3]);
+                    for (int c = 0; c < 4; c++) o[(3 + c) * n + i] = r[c] / s;
+                }
+            }
         }
-        if (point[j]) continue;
-        double mc[4] = {m[3], -m[4], -m[5], -m[6]}, dq[4];
-        mr_qmul(t + 3, mc, dq);
-        for (long i = 0; i < n; i++) {
-            double q[4] = {x[3 * n + i], x[4 * n + i], x[5 * n + i], x[6 * n + i]}, r[4];
-            mr_qmul(dq, q, r);
-            double s = sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2] + r[3] * r[3]);
-            for (int c = 0; c < 4; c++) x[(3 + c) * n + i] = r[c] / s;
+        if (f == 0) continue;
+        if (point[f]) {
+            for (long i = 0; i < n; i++) {
+                double s[4];
+                mk_pin_sample(s);
+                for (int c = 0; c < 4; c++) o[(3 + c) * n + i] = s[c];
+            }
+        } else {
+            mk_canonicalize(o, n, 0);
         }
+        int ok = 1;
+        for (long i = 0; i < 7 * n; i++) ok &= mk_finite(o[i]);
+        if (!ok) rc = MR_NONFINITE;
     }
+    free(which);
+    return rc;
 }
 
-/* Spread of frames idx[0..k) in each chart coordinate: max_i |v_i - v_0| of [t, 2 vec(m^-1 q)]
+/* The chart coordinates in which some frame idx[0..k) varies: bits 0-5 of masks[0] the pose
+ * coordinates (t, 2 vec(m^-1 q) around the frame's chordal mean m), bits 0-2 of masks[1] the
+ * point ones; a kind with no frame gets every bit. A coordinate varies when a sample differs
+ * from the first in it (exactly). Frames whose qx and qy are all zero (a planar map) have no
+ * variation in rx, ry (the chart's are then +-0 too), so only frames that could change the
+ * answer are charted, and the scan stops once every bit is set. */
+void mr_active(const double *rows, const int64_t *idx, long k, long n, const uint8_t *point,
+               int64_t *masks) {
+    int64_t live[2] = {0, 0}, seen[2] = {0, 0};
+    const int64_t full[2] = {63, 7};
+    for (long j = 0; j < k; j++) {
+        if (live[0] == full[0] && live[1] == full[1]) break;
+        const double *x = rows + idx[j] * 7 * n;
+        int pt = point[j] ? 1 : 0;
+        seen[pt] = 1;
+        for (int c = 0; c < 3; c++) {
+            if (live[pt] & ((int64_t)1 << c)) continue;
+            for (long i = 1; i < n; i++)
+                if (x[c * n + i] != x[c * n]) {
+                    live[pt] |= (int64_t)1 << c;
+                    break;
+                }
+        }
+        if (pt || (live[0] & 56) == 56) continue;
+        int need = !(live[0] & 32);
+        if (!need && (live[0] & 24) != 24) {
+            for (long i = 0; i < n && !need; i++)
+                need = x[4 * n + i] != 0.0 || x[5 * n + i] != 0.0;
+        }
+        if (!need) continue;
+        double m[4], v0[6], v[6];
+        chordal_mean(x + 3 * n, n, m);
+        chart_of(x, n, 0, m, v0);
+        for (long i = 1; i < n && (live[0] & 56) != 56; i++) {
+            chart_of(x, n, i, m, v);
+            for (int c = 3; c < 6; c++)
+                if (v[c] != v0[c]) live[0] |= (int64_t)1 << c;
+        }
+    }
+    masks[0] = seen[0] ? live[0] : full[0];
+    masks[1] = seen[1] ? live[1] : full[1];
+}
+
+/* Spread of frames idx[0..k) in each chart coordinate (mr_active's definition, kept as its
+ * reference for the tests): max_i |v_i - v_0| of [t, 2 vec(m^-1 q)]
  * around the frame's chordal mean m (points: t only, the rest 0), k x 6. A coordinate in which
  * no sample differs from the first does not vary in the map (a planar map's z, qx, qy). */
 void mr_spread(const double *rows, const int64_t *idx, long k, long n, const uint8_t *point,

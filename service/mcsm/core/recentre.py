@@ -19,7 +19,7 @@ import time
 import numpy as np
 import numpy.typing as npt
 
-from mcsm.core import kernel, relin
+from mcsm.core import relin
 from mcsm.core.relinearize import (
     MAX_ITERATIONS,
     TOLERANCE,
@@ -108,10 +108,10 @@ def _shift(smap: Relinearizable, cid: int, alive: npt.NDArray[np.int64], rows: A
     if isinstance(comp, Component):
         buf, spare = comp.buffer, smap._spare
         out = spare if spare is not None and spare.shape == buf.shape else np.empty_like(buf)
-        out[: len(comp)] = buf[: len(comp)]
-    relin.recentre(out, slot, flags[slot], mean[moved], target[moved])
-    if kernel.canonicalize_frames(out, flags, 1, len(comp), False) != kernel.OK or \
-            not np.isfinite(out[: len(comp)]).all():
+        rows = buf
+    # copied (a host component) or in place (a host copy), moved, canonicalised, checked
+    if relin.recentre(rows, out, len(comp), flags, slot, mean[moved], target[moved]) != \
+            relin.OK:
         raise NumericalError("the re-centring produced non-finite samples")
     if isinstance(comp, Component):
         smap._spare = comp.swap_buffer(out)

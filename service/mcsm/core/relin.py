@@ -60,7 +60,8 @@ for _name, _args, _res in (
         ("mr_problem_size", (), _L),
         ("mr_moments", (_P, _L, _I, _P, _P), _I),
         ("mr_means", (_P, _P, _L, _L, _P, _P), None),
-        ("mr_recentre", (_P, _P, _L, _L, _P, _P, _P), None),
+        ("mr_recentre", (_P, _P, _L, _L, _P, _P, _L, _P, _P), _I),
+        ("mr_active", (_P, _P, _L, _L, _P, _P), None),
         ("mr_spread", (_P, _P, _L, _L, _P, _P), None),
         ("mr_transform", (_P, _I, _P, _P, _L, _P), None),
         ("mr_solve", (_P,), _I),
@@ -99,22 +100,40 @@ def means(buf: Array, idx: npt.NDArray[np.int64], point: npt.NDArray[np.uint8]) 
     return out
 
 
-def recentre(buf: Array, idx: npt.NDArray[np.int64], point: npt.NDArray[np.uint8],
-             mu: Array, target: Array) -> None:
-    """Move frames ``idx`` of a component buffer ``(cap, 7, N)`` (in place) from their means
-    ``mu`` ``(k, 7)`` (:func:`means`) to ``target`` ``(k, 7)``, every sample keeping its chart
-    deviation from the mean."""
-    if len(idx):
-        i = np.ascontiguousarray(idx, dtype=np.int64)
-        p = np.ascontiguousarray(point, dtype=np.uint8)
-        m = np.ascontiguousarray(mu, dtype=np.float64)
-        t = np.ascontiguousarray(target, dtype=np.float64)
-        _lib.mr_recentre(ptr(buf), ptr(i), len(i), buf.shape[-1], ptr(p), ptr(m), ptr(t))
+def recentre(src: Array, dst: Array, length: int, point: npt.NDArray[np.uint8],
+             idx: npt.NDArray[np.int64], mu: Array, target: Array) -> int:
+    """Frames ``[0, length)`` of a component buffer ``src`` ``(cap, 7, N)`` into ``dst`` (the
+    same array or one of its shape), frames ``idx`` (not the root) moved on the way from their
+    means ``mu`` ``(k, 7)`` (:func:`means`) to ``target`` ``(k, 7)``, every sample keeping its
+    chart deviation from the mean; frames ``1..length-1`` canonicalised as the kernel does
+    (``point``: the component's flags). The kernel's status (non-finite: ``dst`` is partly
+    written)."""
+    if src.shape != dst.shape or not (src.flags.c_contiguous and dst.flags.c_contiguous):
+        raise ValueError("src and dst must be C-contiguous buffers of one shape")
+    i = np.ascontiguousarray(idx, dtype=np.int64)
+    p = np.ascontiguousarray(point, dtype=np.uint8)
+    m = np.ascontiguousarray(mu, dtype=np.float64)
+    t = np.ascontiguousarray(target, dtype=np.float64)
+    return int(_lib.mr_recentre(ptr(src), ptr(dst), length, src.shape[-1], ptr(p), ptr(i),
+                                len(i), ptr(m), ptr(t)))
+
+
+def active(buf: Array, idx: npt.NDArray[np.int64], point: npt.NDArray[np.uint8]
+           ) -> tuple[int, int]:
+    """Bit masks of the pose (x y z rx ry rz) and point (x y z) chart coordinates in which some
+    frame of ``idx`` of a component buffer ``(cap, 7, N)`` varies (a kind with no frame: every
+    bit)."""
+    out = np.zeros(2, dtype=np.int64)
+    i = np.ascontiguousarray(idx, dtype=np.int64)
+    p = np.ascontiguousarray(point, dtype=np.uint8)
+    _lib.mr_active(ptr(buf), ptr(i), len(i), buf.shape[-1], ptr(p), ptr(out))
+    return int(out[0]), int(out[1])
 
 
 def spread(buf: Array, idx: npt.NDArray[np.int64], point: npt.NDArray[np.uint8]) -> Array:
     """``(k, 6)``: per frame of ``idx``, the largest difference of a sample from the first in
-    each chart coordinate (0: the coordinate does not vary in the map)."""
+    each chart coordinate (0: the coordinate does not vary in the map): the definition
+    :func:`active` answers from, kept as its reference (tests)."""
     out = np.zeros((len(idx), 6))
     if len(idx):
         i = np.ascontiguousarray(idx, dtype=np.int64)
