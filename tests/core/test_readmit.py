@@ -1,6 +1,7 @@
-"""Re-admitting refused loop closures after a relinearisation (``Policy.readmit``, off by
-default): a refused closure that the relinearised map agrees with is admitted into the history,
-a wrong one is not; the pending closures are part of the state (snapshot, digest, replay)."""
+"""Re-admitting refused loop closures after a relinearisation (``Policy.readmit``): a
+refused closure that the relinearised map agrees with is admitted into the history, a wrong one
+is not; the pending closures are part of the state (snapshot, digest, replay). The default
+policy keeps them (``readmit=300``) and re-checks them at every re-centring."""
 
 from __future__ import annotations
 
@@ -85,12 +86,21 @@ def test_pending_refusals_are_state_and_replay_bit_identical() -> None:
     assert StochasticMap.from_options(a.options()).policy == POLICY
 
 
-def test_the_default_policy_keeps_no_refusals() -> None:
-    m = StochasticMap(N)
+def test_without_readmit_no_refusal_is_kept_and_the_default_keeps_them() -> None:
+    from dataclasses import replace
+
+    from mcsm.core.smap import DEFAULT_POLICY
+
+    assert DEFAULT_POLICY is not None and DEFAULT_POLICY.readmit == 300
+    m = StochasticMap(N, relinearize=replace(DEFAULT_POLICY, readmit=None))
     script(m)
     h = m.factor_history
     assert h is not None and h.pending.n == 0 and h.n_readmitted == 0
     assert "pending" not in h.to_plain()
+    d = StochasticMap(N)  # the default re-centres at every trusted closure and re-checks them
+    script(d)
+    h = d.factor_history
+    assert h is not None and h.n_readmitted == 5 and h.pending.n == 1  # the wrong one waits
 
 
 def test_a_failed_solve_after_an_admission_changes_nothing(monkeypatch: pytest.MonkeyPatch

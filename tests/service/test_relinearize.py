@@ -25,7 +25,7 @@ from mcsm_client.client import MapClient
 from tests.service.daemon_util import Daemon, noisy_at, start_daemon, start_router, wait_for
 
 N = 32
-POLICY = {"nis": 0.95, "every": 6, "gap": 3, "regate": 1, "spread": 1.3}
+POLICY = {"nis": 0.95, "every": 6, "gap": 3, "regate": 1, "spread": 1.3, "recentre": False}
 # OPTS leave --relinearize-spread at its default (the default policy's 1.3); the standby test
 # names it
 # the recording's one state snapshot comes at seq 25, after the retract and reinstate (a
@@ -33,12 +33,13 @@ POLICY = {"nis": 0.95, "every": 6, "gap": 3, "regate": 1, "spread": 1.3}
 # retraction: a limit of the retract window, not of relinearisation)
 OPTS = ("--samples", str(N), "--snapshot-every", "4", "--snapshots-kept", "8",
         "--disk-snapshot-every", "25", "--relinearize-nis", "0.95", "--relinearize-every", "6",
-        "--relinearize-gap", "3", "--relinearize-regate", "1")
+        "--relinearize-gap", "3", "--relinearize-regate", "1", "--no-relinearize-recentre",
+        "--relinearize-readmit", "none")
 
 Op = tuple[str, str, str, str, "np.ndarray | None", bool]  # id, kind, a, b, samples, trusted
 
 
-RECENTRE = {**POLICY, "recentre": True}
+RECENTRE = {**POLICY, "recentre": True, "readmit": 300}  # as the default policy
 
 
 def _inputs(rng: np.random.Generator, policy: dict[str, object]) -> list[Op]:
@@ -113,7 +114,8 @@ def test_retract_replay_and_restore_through_relinearisations(
     across relinearisations, replay, replay from a snapshot and --restore all give the map
     that the same inputs give in process."""
     ops = _inputs(np.random.default_rng(20261210), policy)
-    opts = (*OPTS, "--relinearize-recentre") if policy.get("recentre") else OPTS
+    opts = (*OPTS, "--relinearize-recentre", "--relinearize-readmit", "300") \
+        if policy.get("recentre") else OPTS
     d = start_daemon(tmp_path, *opts)
     daemons.append(d)
     rng = np.random.default_rng(5)
@@ -162,8 +164,9 @@ def test_a_standby_follows_relinearisations(tmp_path: Path, daemons: list[Daemon
     """Whatever applies inputs through ``MapState.apply`` recomputes a relinearisation: a
     standby that joins late (catching up from the map's NATS log) and then follows live holds
     the primary's digest; after the primary's SIGKILL it takes over with that digest and
-    relinearises on request itself."""
-    ops = _inputs(np.random.default_rng(20261211), POLICY)
+    relinearises on request itself. The daemons leave re-centring and readmission at their
+    defaults (on)."""
+    ops = _inputs(np.random.default_rng(20261211), RECENTRE)
     router, ep = start_router(tmp_path)
     repl = ("--samples", str(N), "--connect", ep, "--nats", ",".join(nats.urls),
             "--relinearize-nis", "0.95", "--relinearize-every", "6", "--relinearize-gap", "3",
@@ -180,7 +183,7 @@ def test_a_standby_follows_relinearisations(tmp_path: Path, daemons: list[Daemon
             for op in ops[half:]:  # both relinearize requests come after the standby joined
                 _send(c, op)
             info = c.info()
-            assert info.digest == _fresh(ops).state_digest()
+            assert info.digest == _fresh(ops, policy=RECENTRE).state_digest()
             wait_for("the standby holds the head",
                      lambda: list(c.info().standbys.values()) == [info.seq])
             p.proc.send_signal(signal.SIGKILL)
@@ -191,20 +194,21 @@ def test_a_standby_follows_relinearisations(tmp_path: Path, daemons: list[Daemon
             assert after.seq == info.seq and after.digest == info.digest
             last: Op = ("rl-after", "relinearize", "", "", None, False)
             _send(c, last)
-            assert c.info().digest == _fresh([*ops, last]).state_digest()
+            assert c.info().digest == _fresh([*ops, last], policy=RECENTRE).state_digest()
         assert s.stop() == 0
     finally:
         router.stop(signal.SIGKILL)
     rep = replay(s.record)
     assert rep.divergence is None
-    assert rep.final_digests()["m"] == _fresh([*ops, last]).state_digest()
+    assert rep.final_digests()["m"] == _fresh([*ops, last], policy=RECENTRE).state_digest()
 
 
 def test_the_serve_flags_give_the_default_policy_and_refuse_a_bad_spread(
         capsys: pytest.CaptureFixture[str]) -> None:
     """``mcsm serve`` with no relinearisation flag gives the core's default policy; a spread
     outside [1, 2] is a usage error; with every trigger off a spread other than 1 is kept (for
-    requested relinearisations), and ``--history none`` turns the policy off."""
+    requested relinearisations), ``--history none`` turns the policy off, and re-centring is on
+    unless ``--no-relinearize-recentre``."""
     from mcsm.cli import build_parser
     from mcsm.cli.serve_cmd import _policy
     from mcsm.core.relinearize import Policy
@@ -220,19 +224,23 @@ def test_the_serve_flags_give_the_default_policy_and_refuse_a_bad_spread(
             build_parser().parse_args(["serve", "--relinearize-spread", bad])
         assert exc.value.code == 2
         assert "expected a number in [1, 2]" in capsys.readouterr().err
-    off = ("--relinearize-nis", "none", "--relinearize-regate", "none")
+    off = ("--relinearize-nis", "none", "--relinearize-regate", "none",
+           "--no-relinearize-recentre")
     assert policy(*off, "--relinearize-spread", "1") is None
     kept = policy(*off, "--relinearize-spread", "1.5")
-    assert kept is not None and Policy.from_plain(kept) == Policy(gap=25, spread=1.5)
+    assert kept is not None and Policy.from_plain(kept) == Policy(gap=25, spread=1.5,
+                                                                  readmit=300)
     assert policy("--history", "none") is None
-    # --relinearize-recentre alone keeps a policy; with --history none it is refused
+    assert policy("--history", "none", "--no-relinearize-recentre") is None
+    # re-centring alone keeps a policy; asked for with --history none it is refused
     rc = policy(*off, "--relinearize-spread", "1", "--relinearize-recentre")
-    assert rc is not None and Policy.from_plain(rc) == Policy(gap=25, recentre=True)
-    assert Policy.from_plain(policy("--relinearize-recentre") or {}) == \
-        Policy(nis=0.95, regate=1, gap=25, spread=1.3, recentre=True)
+    assert rc is not None and Policy.from_plain(rc) == Policy(gap=25, recentre=True,
+                                                              readmit=300)
+    assert Policy.from_plain(policy("--relinearize-recentre") or {}) == DEFAULT_POLICY
     with pytest.raises(McsmError, match="needs a history"):
         policy("--history", "none", "--relinearize-recentre")
-    both = policy("--relinearize-recentre", "--relinearize-readmit", "300")
-    assert Policy.from_plain(both or {}) == Policy(nis=0.95, regate=1, gap=25, spread=1.3,
-                                                   recentre=True, readmit=300)
-    assert (policy() or {}).get("readmit", "missing") is None  # off unless asked for
+    with pytest.raises(McsmError, match="needs a history"):
+        policy("--history", "none", "--relinearize-readmit", "50")
+    alone = policy("--no-relinearize-recentre", "--relinearize-readmit", "none")
+    assert Policy.from_plain(alone or {}) == Policy(nis=0.95, regate=1, gap=25, spread=1.3)
+    assert (policy() or {}).get("readmit") == 300 and (policy() or {}).get("recentre") is True

@@ -6,7 +6,7 @@
                [--method joint|paper] [--gate Q|none] [--gate-defer [K]]
                [--gate-scale W:T:S|none] [--history BYTES|none] [--relinearize-nis Q|none]
                [--relinearize-every K|none] [--relinearize-gap K] [--relinearize-regate K|none]
-               [--relinearize-spread S] [--relinearize-recentre]
+               [--relinearize-spread S] [--[no-]relinearize-recentre]
                [--relinearize-readmit K|none]
                [--record PATH.mcap] [--restore PATH.mcap] [--zenoh-config FILE]
                [--connect ENDPOINT]... [--nats URL]... [--standby-of MAP]...

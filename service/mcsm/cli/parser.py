@@ -148,10 +148,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="every relinearisation draws S x the posterior's deviations (1: the "
                         "posterior itself; at most 2; default %(default)s, "
                         "docs/relinearisation.md 'Redraw spread')")
-    s.add_argument("--relinearize-recentre", action="store_true", default=pol.recentre,
+    s.add_argument("--relinearize-recentre", action=argparse.BooleanOptionalAction,
+                   default=None,
                    help="after every accepted loop closure that was not followed by a "
                         "relinearisation, solve its component and move its samples' means to "
-                        "the solution, keeping their deviations (one solve per closure; "
+                        "the solution, keeping their deviations: one solve of the component "
+                        "per closure (default: on; --no-relinearize-recentre turns it off, "
                         "docs/relinearisation.md 'Re-centring')")
     s.add_argument("--relinearize-readmit", type=_every, default=pol.readmit, metavar="K|none",
                    help="keep the loop closures the gate refused within the last K inputs and "

@@ -114,17 +114,18 @@ def _policy(args: argparse.Namespace) -> dict[str, Any] | None:
     requested relinearisations)."""
     pol = DEFAULT_POLICY or Policy()
     triggers = (args.relinearize_nis, args.relinearize_every, args.relinearize_regate)
+    recentre = pol.recentre if args.relinearize_recentre is None else args.relinearize_recentre
     if args.history is None:
         if triggers in ((pol.nis, pol.every, pol.regate), (None, None, None)) \
-                and not args.relinearize_recentre and args.relinearize_readmit is None:
+                and not args.relinearize_recentre \
+                and args.relinearize_readmit in (pol.readmit, None):
             return None  # --history none turns the default policy off
         raise McsmError("--relinearize-* needs a history (not --history none)")
-    if triggers == (None, None, None) and args.relinearize_spread == 1.0 \
-            and not args.relinearize_recentre and args.relinearize_readmit is None:
-        return None
+    if triggers == (None, None, None) and args.relinearize_spread == 1.0 and not recentre:
+        return None  # (readmit acts only through regate or recentre)
     return {"nis": args.relinearize_nis, "every": args.relinearize_every,
             "regate": args.relinearize_regate, "gap": args.relinearize_gap,
-            "spread": args.relinearize_spread, "recentre": args.relinearize_recentre,
+            "spread": args.relinearize_spread, "recentre": recentre,
             "readmit": args.relinearize_readmit}
 
 

@@ -87,8 +87,8 @@ class Policy:
         solution is within :data:`TRIM_QUANTILE` (the report's ``readmitted``), and once the
         last :data:`REGATE_WINDOW` gated closures all passed (and ``gap`` inputs went by) one
         more solve checks the marked ones left (the map changes only if it admits one), then
-        forgets them (an experiment,
-        off by default: docs/evaluation.md, "Re-admitting refused closures")
+        forgets them (docs/evaluation.md, "Re-admitting refused closures"); with ``recentre``
+        every re-centring re-checks them instead (the default policy's way)
     spread : every relinearisation of the map (automatic or asked for) draws its samples'
         deviations from the posterior times this (1: the posterior itself; its covariance
         times ``spread**2``): an allowance for what the inputs' covariances leave out, which a
@@ -266,13 +266,7 @@ def active_coordinates(rows: Array, flags: npt.NDArray[np.uint8]) -> tuple[int, 
     of a component (host ``rows``, root first) other than its root varies: the others (a planar
     map's z, qx, qy; rotations an input never let vary) are held, as the filter holds them."""
     idx = np.arange(1, len(rows), dtype=np.int64)
-    sp = relin.spread(rows, idx, flags[idx])
-    masks = []
-    for point, width in ((False, 6), (True, 3)):
-        sel = flags[idx].astype(bool) == point
-        live = np.any(sp[sel] > 0.0, axis=0)[:width] if np.any(sel) else np.ones(width, bool)
-        masks.append(int(sum(1 << k for k in range(width) if live[k])))
-    return masks[0], masks[1]
+    return relin.active(rows, idx, flags[idx])
 
 
 def _problem(smap: Relinearizable, h: FactorHistory, cid: int, ids: npt.NDArray[np.int64],

@@ -64,12 +64,17 @@ DEFAULT_GATE_SCALE: dict[str, Any] = {"window": 15, "open": 3.0, "max": 30.0}
 """The gate's default scale rule: the threshold is multiplied by ``m / open`` clipped to
 [1, ``max``], where ``m`` is the median, over the last ``window`` gated closures, of their NIS
 over the chi-square median for their dof (measured in docs/design.md, "Relinearisation")."""
-DEFAULT_POLICY: Policy | None = Policy(nis=0.95, regate=1, gap=25, spread=1.3)
+DEFAULT_POLICY: Policy | None = Policy(nis=0.95, regate=1, gap=25, spread=1.3, recentre=True,
+                                       readmit=300)
 """The default automatic relinearisation: after an accepted loop closure with NIS above the
 0.95 quantile and at every gate failure (then the closure is gated again), at most once per 25
 inputs of a component, drawing 1.3 x the posterior's deviations (docs/relinearisation.md,
-"Redraw spread", measures it on real data and on the wrong-closure benchmark;
-:data:`mcsm.core.relinearize.REPAIR_ONLY` is the default before it)."""
+"Redraw spread"); after every other accepted loop closure a re-centring (the component solved,
+each frame's samples moved so their mean is the solution), which also admits the closures the
+gate refused within the last 300 inputs that the solution agrees with (docs/relinearisation.md,
+"Re-centring", measures both on real data and on the wrong-closure benchmark). The defaults
+before: the same without ``recentre`` and ``readmit``, and before those
+:data:`mcsm.core.relinearize.REPAIR_ONLY`."""
 
 
 class StochasticMap(Forest):
