@@ -164,6 +164,32 @@ void mr_means(const double *rows, const int64_t *idx, long k, long n, const uint
 
 void mk_canonicalize(double *x, long n, int normalize);  /* _kernel.c */
 
+/* q_i <- (dq q_i) / |dq q_i| for the rotation rows (4 x n) of one frame, from src to dst (the
+ * same rows or others), CHUNK samples at a time through a local block: mr_qmul's products and
+ * sums written out in its order, so the loop vectorises with the same bits. */
+static void recentre_rotations(const double *dq, const double *src, double *dst, long n) {
+    const double p0 = dq[0], p1 = dq[1], p2 = dq[2], p3 = dq[3];
+    double r[4][CHUNK];
+    for (long i0 = 0; i0 < n; i0 += CHUNK) {
+        long k = n - i0 < CHUNK ? n - i0 : CHUNK;
+        const double *sw = src + i0, *sx = src + n + i0, *sy = src + 2 * n + i0,
+                     *sz = src + 3 * n + i0;
+        for (long i = 0; i < k; i++) {
+            double q0 = sw[i], q1 = sx[i], q2 = sy[i], q3 = sz[i];
+            double r0 = p0 * q0 - p1 * q1 - p2 * q2 - p3 * q3;
+            double r1 = p0 * q1 + p1 * q0 + p2 * q3 - p3 * q2;
+            double r2 = p0 * q2 - p1 * q3 + p2 * q0 + p3 * q1;
+            double r3 = p0 * q3 + p1 * q2 - p2 * q1 + p3 * q0;
+            double s = sqrt(r0 * r0 + r1 * r1 + r2 * r2 + r3 * r3);
+            r[0][i] = r0 / s;
+            r[1][i] = r1 / s;
+            r[2][i] = r2 / s;
+            r[3][i] = r3 / s;
+        }
+        for (int c = 0; c < 4; c++) memcpy(dst + c * n + i0, r[c], sizeof(double) * (size_t)k);
+    }
+}
+
 /* Frames 0..len-1 of a component's buffer src copied to dst (the same buffer, or one of the
  * same shape), frames idx[0..k) (never the root, 0) moved from their means mu (mr_means) onto
  * the poses tgt (both k x 7) on the way: t_i += t* - mean t and q_i <- (q* mean_q^-1) q_i,
@@ -194,12 +220,7 @@ int mr_recentre(const double *src, double *dst, long len, long n, const uint8_t 
             } else {
                 double mc[4] = {m[3], -m[4], -m[5], -m[6]}, dq[4];
                 mr_qmul(t + 3, mc, dq);
-                for (long i = 0; i < n; i++) {
-                    double q[4] = {x[3 * n + i], x[4 * n + i], x[5 * n + i], x[6 * n + i]}, r[4];
-                    mr_qmul(dq, q, r);
-                    double s = sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2] + r[3] * r[3]);
-                    for (int c = 0; c < 4; c++) o[(3 + c) * n + i] = r[c] / s;
-                }
+                recentre_rotations(dq, x + 3 * n, o + 3 * n, n);
             }
         }
         if (f == 0) continue;
@@ -235,19 +256,20 @@ void mr_active(const double *rows, const int64_t *idx, long k, long n, const uin
         const double *x = rows + idx[j] * 7 * n;
         int pt = point[j] ? 1 : 0;
         seen[pt] = 1;
-        for (int c = 0; c < 3; c++) {
+        for (int c = 0; c < 3; c++) {  /* whole-row reductions: they vectorise */
             if (live[pt] & ((int64_t)1 << c)) continue;
-            for (long i = 1; i < n; i++)
-                if (x[c * n + i] != x[c * n]) {
-                    live[pt] |= (int64_t)1 << c;
-                    break;
-                }
+            const double *row = x + c * n, first = row[0];
+            int differ = 0;
+            for (long i = 1; i < n; i++) differ |= row[i] != first;
+            if (differ) live[pt] |= (int64_t)1 << c;
         }
         if (pt || (live[0] & 56) == 56) continue;
         int need = !(live[0] & 32);
         if (!need && (live[0] & 24) != 24) {
-            for (long i = 0; i < n && !need; i++)
-                need = x[4 * n + i] != 0.0 || x[5 * n + i] != 0.0;
+            const double *qx = x + 4 * n, *qy = x + 5 * n;
+            int nonzero = 0;
+            for (long i = 0; i < n; i++) nonzero |= (qx[i] != 0.0) | (qy[i] != 0.0);
+            need = nonzero;
         }
         if (!need) continue;
         double m[4], v0[6], v[6];
