@@ -5,13 +5,15 @@ the expected sequence is now stale), while another message with a stale expected
 is refused (code 10071), and one that expects an impossible sequence is refused naming the
 stream's last (how a new primary reads the head); a lease key taken with ``create`` cannot be
 taken again until it expires (the bucket's TTL), and the old holder's renewal by revision is
-then refused."""
+then refused. ``Lease.release`` deletes the lease also after a renewal whose answer it never
+saw (a newer revision that still names it), and never another holder's."""
 
 from __future__ import annotations
 
 import asyncio
 import time
 from pathlib import Path
+from typing import Any
 
 from mcsm.serve.natsrun import NatsCluster
 
@@ -73,7 +75,28 @@ def test_dedup_before_expected_sequence_and_lease_expiry(tmp_path: Path) -> None
             raise AssertionError("an expired holder renewed its lease")
         except KeyWrongLastSequenceError:
             pass
+        await released(await js.create_key_value(KeyValueConfig(bucket="R", ttl=30.0,
+                                                                 history=1, replicas=3)))
         await nc.close()
+
+    async def released(kv: Any) -> None:
+        from mcsm.serve.replication_lease import Lease
+
+        a = Lease(kv, "m", "A", 30.0)
+        assert await a.acquire()
+        await kv.update("m", b"A", last=a.rev)  # a renewal whose answer A never saw
+        await a.release()
+        try:
+            await kv.get("m")
+            raise AssertionError("the lease was not released")
+        except KeyNotFoundError:
+            pass
+        b = Lease(kv, "m", "B", 30.0)
+        assert await b.acquire() and await a.acquire() is False
+        a.rev = b.rev  # B renews: A, with a revision B wrote before, never deletes it
+        await kv.update("m", b"B", last=b.rev)
+        await a.release()
+        assert bytes((await kv.get("m")).value) == b"B"
 
     with NatsCluster(tmp_path / "nats") as c:
         asyncio.run(run(c.urls))

@@ -13,6 +13,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from datetime import datetime
 from pathlib import Path
@@ -24,6 +25,7 @@ from mcsm.log.reader import RecordingReader
 from mcsm.log.replay import replay
 from mcsm.log.topics import TOPIC_CHECKPOINT
 from mcsm.serve.natsrun import NatsCluster
+from mcsm.wire import Ack
 from mcsm_client.cli import main as client_main
 from mcsm_client.client import MapClient
 
@@ -197,11 +199,14 @@ def test_late_standby_catches_up_and_keeps_every_id(tmp_path: Path, daemons: lis
     assert min(inputs(s.record), default=info.seq + 1) == first
 
 
+@pytest.mark.parametrize("send", ["after", "with"])
 def test_a_stopped_primary_hands_over_at_once(tmp_path: Path, daemons: list[Daemon],
-                                              nats: NatsCluster) -> None:
+                                              nats: NatsCluster, send: str) -> None:
     """SIGINT: the primary answers what it queued, releases its lease, and the standby
     serves within a second (no lease expiry to wait for); a ``--map`` server started while
-    the map's lease is held refuses (exit 2) and names ``--standby-of``."""
+    the map's lease is held refuses (exit 2) and names ``--standby-of``. The next update is
+    sent after the signal, or with it: sent to the primary while it is stopped (SIGSTOP,
+    for 0.3 s: well within its lease), which gets it and the SIGINT as it resumes."""
     router, ep = start_router(tmp_path)
     try:
         p = replicated_server(tmp_path, "p", ep, nats.urls, role="primary")
@@ -221,22 +226,44 @@ def test_a_stopped_primary_hands_over_at_once(tmp_path: Path, daemons: list[Daem
                 timeout=60)
             assert second.returncode == 2 and "--standby-of m" in second.stderr
             assert "holds the map's lease" in second.stderr  # the lease refuses, not a token
+            x = noisy_at(rng, N, [1.0, 0.0, 0.0])
+            acks: list[Ack] = []
+            th = threading.Thread(target=lambda: acks.append(c.update("r/5", "r/6", x)))
+            if send == "with":
+                p.proc.send_signal(signal.SIGSTOP)
+                th.start()
+                time.sleep(0.3)
             t0 = time.time()
             p.proc.send_signal(signal.SIGINT)
-            ack = c.update("r/5", "r/6", noisy_at(rng, N, [1.0, 0.0, 0.0]))
-            assert ack.seq == 6 and ack.server != p_id
+            if send == "with":
+                p.proc.send_signal(signal.SIGCONT)
+            else:
+                th.start()
+            th.join(timeout=60)
+            ack, = acks
+            assert ack.seq == 6
             assert p.proc.wait(timeout=30) == 0
             # the standby took over well before an unreleased lease could expire (5/6 of the
             # TTL after the last renewal: 1.7 s); the client may take up to 1 s more to see
             # the new primary's token (its liveliness query)
+            wait_for("the standby took over", lambda: "took over as primary" in s.log_text())
             took = _took_over_at(s.log_text()) - t0
             assert 0 < took < 1.0, took
         assert s.stop() == 0
     finally:
         router.stop(signal.SIGKILL)
-    mine = inputs(p.record)
-    assert sorted(mine) == list(range(1, 6))
-    assert inputs(s.record) == {**mine, 6: inputs(s.record)[6]}  # the primary's 5, then one
+    _check_handover(inputs(p.record), inputs(s.record), ack, p_id)
+
+
+def _check_handover(mine: dict[int, str], theirs: dict[int, str], ack: Ack,
+                    p_id: str) -> None:
+    """The update sent about the SIGINT reached the primary before it stopped taking requests
+    (then the primary applied and answered it) or after (the standby applied it once it took
+    over); either way one history holds it once, as seq 6, and its first answer came from
+    the server that applied it."""
+    assert theirs == {**mine, 6: ack.request_id}
+    assert sorted(mine) == list(range(1, 7 if 6 in mine else 6))
+    assert (ack.server == p_id) == (6 in mine) and not ack.duplicate
 
 
 def test_a_primary_without_quorum_rebuilds_from_its_split_recording(

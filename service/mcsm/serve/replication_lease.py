@@ -115,12 +115,31 @@ class Lease:
 
     async def release(self) -> None:
         """Delete the lease (by revision, so never another holder's); it expires by itself
-        if that fails."""
-        try:
-            await asyncio.wait_for(self.kv.delete(self.key, last=self.rev), 2.0)
-        except Exception as exc:  # expired already, or unreachable
-            log.info("lease %s: not released: %s", self.key, exc)
+        if that fails. A renewal cancelled in flight (the server stopping) or whose answer
+        was lost may have written a newer revision: when the entry still names this server,
+        it is deleted by that revision."""
+        rev = self.rev
+        for _ in range(2):
+            try:
+                await asyncio.wait_for(self.kv.delete(self.key, last=rev), 2.0)
+                break
+            except Exception as exc:  # expired already, renewed meanwhile, or unreachable
+                newer = await self._own_revision()
+                if newer is None or newer == rev:
+                    log.info("lease %s: not released: %s", self.key, exc)
+                    break
+                rev = newer
         self._lost()
+
+    async def _own_revision(self) -> int | None:
+        """The lease entry's revision if it names this server (None otherwise)."""
+        try:
+            e = await asyncio.wait_for(self.kv.get(self.key), 1.0)
+        except Exception:
+            return None
+        if bytes(e.value or b"") != self.holder.encode():
+            return None
+        return int(e.revision or 0)
 
     async def holder_now(self) -> str:
         """The id of the server that holds it now ("?" if unknown)."""

@@ -268,7 +268,13 @@ class Server:
             if self._closed:
                 return
             self._closed = True
-        undeclare_all(self._entities)
+        # No new requests; the liveliness tokens stay while the worker answers the queued
+        # ones (a client cancels its request when the server's token goes away, and would
+        # ask again elsewhere what this server is applying) and go before the lease is
+        # released (a client never sees two servers claim the map).
+        ents, self._entities = self._entities, []
+        tokens = [e for e in ents if isinstance(e, zenoh.LivelinessToken)]
+        undeclare_all([e for e in ents if not isinstance(e, zenoh.LivelinessToken)])
         for r in self.replicas.values():
             r.stop_loop()
         if self._worker is not None and self._worker.is_alive():
@@ -276,6 +282,7 @@ class Server:
             self._worker.join(timeout=60.0)
             if self._worker.is_alive():
                 log.error("worker did not stop within 60 s")
+        undeclare_all(tokens)
         for r in self.replicas.values():  # a primary's lease is released: a standby takes over
             r.close(release=True)
         if self.link is not None:
