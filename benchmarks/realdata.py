@@ -85,11 +85,14 @@ BEFORE = {"gate_scale": None, "history": None, "relinearize": None}
 
 CONFIGS: list[dict[str, Any]] = [
     {"name": "mcsm defaults", "options": {}},
+    {"name": "mcsm defaults without calibration (the fourth round's defaults)",
+     "options": {"relinearize": {**_default_policy(), "calibrate": None}}},
     {"name": "mcsm defaults without re-centring (the defaults before it: nis 0.95, regate 1, "
              "gap 25, spread 1.3)",
-     "options": {"relinearize": {**_default_policy(), "recentre": False, "readmit": None}}},
+     "options": {"relinearize": {**_default_policy(), "recentre": False, "readmit": None,
+                                 "calibrate": None}}},
     {"name": "mcsm defaults without readmit (re-centring alone)",
-     "options": {"relinearize": {**_default_policy(), "readmit": None}}},
+     "options": {"relinearize": {**_default_policy(), "readmit": None, "calibrate": None}}},
     {"name": "mcsm RECOMMENDED (nis 0.95, regate 1, gap 25)",
      "options": {"relinearize": _recommended()}},
     {"name": "mcsm repair only (regate 6, gap 25: the defaults before spread)",

@@ -92,7 +92,7 @@ def test_without_readmit_no_refusal_is_kept_and_the_default_keeps_them() -> None
     from mcsm.core.smap import DEFAULT_POLICY
 
     assert DEFAULT_POLICY is not None and DEFAULT_POLICY.readmit == 300
-    m = StochasticMap(N, relinearize=replace(DEFAULT_POLICY, readmit=None))
+    m = StochasticMap(N, relinearize=replace(DEFAULT_POLICY, readmit=None, calibrate=None))
     script(m)
     h = m.factor_history
     assert h is not None and h.pending.n == 0 and h.n_readmitted == 0
@@ -123,3 +123,59 @@ def test_a_failed_solve_after_an_admission_changes_nothing(monkeypatch: pytest.M
     assert m.state_digest() == before
     h = m.factor_history
     assert h is not None and h.pending.n == 6 and h.n_readmitted == 0
+
+
+CALIBRATED = Policy(regate=6, gap=1, readmit=50, calibrate=3)
+
+
+def test_calibrate_scales_the_gate_by_the_closures_admitted_later() -> None:
+    """``Policy.calibrate``: the five right closures refused and admitted later keep their
+    arrival ratios (NIS over the unscaled threshold); the gate's threshold is then at least
+    the lower quartile of the last K, so a closure 5 cm off (NIS far above the 0.99 quantile,
+    far below the refused ones') passes with a verdict that says why; the same map without it
+    refuses it."""
+    from mcsm.core.gate import chi2_quantile
+
+    # without the recent-NIS scale (which these refusals open too) only the calibration acts
+    plain = StochasticMap(N, relinearize=POLICY, gate_scale=None)
+    cal = StochasticMap(N, relinearize=CALIBRATED, gate_scale=None)
+    rs = script(cal)
+    script(plain)
+    h = cal.factor_history
+    assert h is not None and h.n_readmitted == 5
+    # the right ones (1.5 m: inputs 1-3, 5, 6; the 3 m one stays pending), in arrival order
+    right = [rs[k].verdict for k in (1, 2, 3, 5, 6)]  # type: ignore[attr-defined]
+    assert h.admitted_u == [v.nis / chi2_quantile(0.99, v.dof) for v in right]
+    assert min(h.admitted_u) > 1.0  # each was beyond the gate when it came
+    low = sorted(h.admitted_u[-3:])[0]  # the lower quartile of three: the smallest
+    assert cal.learnt_factor() == min(max(low, 1.0), 30.0) and plain.learnt_factor() == 1.0
+    rng = np.random.default_rng(7)
+    x = at(rng, 1.55, 0.005)
+    got, ref = cal.update("p0", "p1", x.copy()), plain.update("p0", "p1", x.copy())
+    thr = chi2_quantile(0.99, got.verdict.dof)
+    assert thr < got.verdict.nis < got.verdict.threshold and got.kind == "loop_closure"
+    assert "by the closures admitted later" in got.verdict.reason
+    assert ref.kind == "rejected" and ref.verdict.nis > thr
+
+
+def test_calibration_is_state_and_needs_readmit() -> None:
+    from mcsm.errors import InvalidOperation
+
+    a = StochasticMap(N, relinearize=CALIBRATED)
+    script(a)
+    h = a.factor_history
+    assert h is not None and len(h.admitted_u) == 5
+    b = StochasticMap.from_snapshot(a.snapshot())
+    assert b.state_digest() == a.state_digest() and b.learnt_factor() == a.learnt_factor()
+    assert b.factor_history is not None and b.factor_history.admitted_u == h.admitted_u
+    c = StochasticMap(N, relinearize=CALIBRATED)
+    script(c)
+    assert c.state_digest() == a.state_digest()
+    h.admitted_u[-1] += 1e-9  # the ratios are part of the digest
+    assert a.state_digest() != c.state_digest()
+    assert a.options()["relinearize"]["calibrate"] == 3
+    assert StochasticMap.from_options(a.options()).policy == CALIBRATED
+    with pytest.raises(InvalidOperation, match="calibrate"):
+        Policy(regate=6, calibrate=3)  # without readmit
+    with pytest.raises(InvalidOperation, match="calibrate"):
+        Policy(readmit=50, calibrate=65)

@@ -39,7 +39,7 @@ OPTS = ("--samples", str(N), "--snapshot-every", "4", "--snapshots-kept", "8",
 Op = tuple[str, str, str, str, "np.ndarray | None", bool]  # id, kind, a, b, samples, trusted
 
 
-RECENTRE = {**POLICY, "recentre": True, "readmit": 300}  # as the default policy
+RECENTRE = {**POLICY, "recentre": True, "readmit": 300, "calibrate": 15}  # as the default
 
 
 def _inputs(rng: np.random.Generator, policy: dict[str, object]) -> list[Op]:
@@ -207,8 +207,8 @@ def test_the_serve_flags_give_the_default_policy_and_refuse_a_bad_spread(
         capsys: pytest.CaptureFixture[str]) -> None:
     """``mcsm serve`` with no relinearisation flag gives the core's default policy; a spread
     outside [1, 2] is a usage error; with every trigger off a spread other than 1 is kept (for
-    requested relinearisations), ``--history none`` turns the policy off, and re-centring is on
-    unless ``--no-relinearize-recentre``."""
+    requested relinearisations), ``--history none`` turns the policy off, re-centring is on
+    unless ``--no-relinearize-recentre``, and calibration goes with readmit."""
     from mcsm.cli import build_parser
     from mcsm.cli.serve_cmd import _policy
     from mcsm.core.relinearize import Policy
@@ -229,13 +229,13 @@ def test_the_serve_flags_give_the_default_policy_and_refuse_a_bad_spread(
     assert policy(*off, "--relinearize-spread", "1") is None
     kept = policy(*off, "--relinearize-spread", "1.5")
     assert kept is not None and Policy.from_plain(kept) == Policy(gap=25, spread=1.5,
-                                                                  readmit=300)
+                                                                  readmit=300, calibrate=15)
     assert policy("--history", "none") is None
     assert policy("--history", "none", "--no-relinearize-recentre") is None
     # re-centring alone keeps a policy; asked for with --history none it is refused
     rc = policy(*off, "--relinearize-spread", "1", "--relinearize-recentre")
     assert rc is not None and Policy.from_plain(rc) == Policy(gap=25, recentre=True,
-                                                              readmit=300)
+                                                              readmit=300, calibrate=15)
     assert Policy.from_plain(policy("--relinearize-recentre") or {}) == DEFAULT_POLICY
     with pytest.raises(McsmError, match="needs a history"):
         policy("--history", "none", "--relinearize-recentre")
@@ -244,3 +244,11 @@ def test_the_serve_flags_give_the_default_policy_and_refuse_a_bad_spread(
     alone = policy("--no-relinearize-recentre", "--relinearize-readmit", "none")
     assert Policy.from_plain(alone or {}) == Policy(nis=0.95, regate=1, gap=25, spread=1.3)
     assert (policy() or {}).get("readmit") == 300 and (policy() or {}).get("recentre") is True
+    # calibration: on by default where readmit is, off with it or with "none"
+    assert (policy() or {}).get("calibrate") == 15
+    assert (policy("--relinearize-calibrate", "none") or {}).get("calibrate") is None
+    assert (policy("--relinearize-calibrate", "5") or {}).get("calibrate") == 5
+    assert (policy("--relinearize-readmit", "none") or {}).get("calibrate") is None
+    assert policy("--history", "none", "--relinearize-calibrate", "none") is None
+    with pytest.raises(McsmError, match="needs a history"):
+        policy("--history", "none", "--relinearize-calibrate", "5")

@@ -7,7 +7,7 @@
                [--gate-scale W:T:S|none] [--history BYTES|none] [--relinearize-nis Q|none]
                [--relinearize-every K|none] [--relinearize-gap K] [--relinearize-regate K|none]
                [--relinearize-spread S] [--[no-]relinearize-recentre]
-               [--relinearize-readmit K|none]
+               [--relinearize-readmit K|none] [--relinearize-calibrate K|none]
                [--record PATH.mcap] [--restore PATH.mcap] [--zenoh-config FILE]
                [--connect ENDPOINT]... [--nats URL]... [--standby-of MAP]...
     mcsm router --listen ENDPOINT

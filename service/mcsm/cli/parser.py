@@ -159,6 +159,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="keep the loop closures the gate refused within the last K inputs and "
                         "admit those a later solve agrees with (with --relinearize-recentre: "
                         "at every closure; default %(default)s)")
+    s.add_argument("--relinearize-calibrate", type=lambda t: 0 if t == "none" else _defer(t),
+                   default=None, metavar="K|none",
+                   help="scale the gate by at least the lower quartile of how far the last K "
+                        "closures it refused and admitted later were beyond it (default "
+                        f"{pol.calibrate} "
+                        "with --relinearize-readmit; docs/relinearisation.md 'Calibrating the "
+                        "gate')")
     s.add_argument("--record", type=Path, default=None, metavar="PATH.mcap",
                    help="new recording file (default recordings/run-<UTC time>.mcap)")
     s.add_argument("--restore", type=Path, nargs="+", default=None, metavar="PATH.mcap",

@@ -118,15 +118,19 @@ def _policy(args: argparse.Namespace) -> dict[str, Any] | None:
     if args.history is None:
         if triggers in ((pol.nis, pol.every, pol.regate), (None, None, None)) \
                 and not args.relinearize_recentre \
-                and args.relinearize_readmit in (pol.readmit, None):
+                and args.relinearize_readmit in (pol.readmit, None) \
+                and args.relinearize_calibrate in (None, 0):
             return None  # --history none turns the default policy off
         raise McsmError("--relinearize-* needs a history (not --history none)")
     if triggers == (None, None, None) and args.relinearize_spread == 1.0 and not recentre:
         return None  # (readmit acts only through regate or recentre)
+    calibrate = args.relinearize_calibrate or None  # 0: none
+    if args.relinearize_calibrate is None and args.relinearize_readmit is not None:
+        calibrate = pol.calibrate  # the default, where it applies (it needs readmit)
     return {"nis": args.relinearize_nis, "every": args.relinearize_every,
             "regate": args.relinearize_regate, "gap": args.relinearize_gap,
             "spread": args.relinearize_spread, "recentre": recentre,
-            "readmit": args.relinearize_readmit}
+            "readmit": args.relinearize_readmit, "calibrate": calibrate}
 
 
 def _defer(text: str) -> int:

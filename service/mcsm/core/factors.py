@@ -42,7 +42,11 @@ _FAC_COLS: dict[str, tuple[Any, tuple[int, ...]]] = {
     "z": (np.float64, (7,)), "w": (np.float64, (21,))}
 _PEND_COLS: dict[str, tuple[Any, tuple[int, ...]]] = {
     "kind": (np.int32, ()), "vars": (np.int32, (2,)), "z": (np.float64, (7,)),
-    "w": (np.float64, (21,)), "at": (np.int64, ()), "burst": (np.uint8, ())}
+    "w": (np.float64, (21,)), "at": (np.int64, ()), "burst": (np.uint8, ()),
+    "u": (np.float64, ())}
+ADMITTED_KEEP = 64
+"""How many arrival ratios of refused closures admitted later the history keeps
+(``Policy.calibrate`` reads the last K of them)."""
 
 
 class Table:
@@ -82,6 +86,9 @@ class Table:
     def load(self, d: dict[str, Any]) -> None:
         self.n = int(d["n"])
         for k, (dt, shape) in self._cols.items():
+            if k not in d:  # a column added later (the pending table's "u"): zeros
+                self._data[k] = np.zeros((max(4, self.n), *shape), dtype=dt)
+                continue
             a = np.frombuffer(d[k], dtype=np.dtype(dt).newbyteorder("<")).astype(dt)
             a = a.reshape((self.n, *shape))
             b = np.zeros((max(4, self.n), *shape), dtype=dt)
@@ -153,6 +160,7 @@ class FactorHistory:
         self.n_marginalised = 0              # variables marginalised into priors
         self.pending = Table(_PEND_COLS)     # refused closures kept for re-admission
         self.n_readmitted = 0                # refused closures admitted later
+        self.admitted_u: list[float] = []    # their arrival ratios (``Policy.calibrate``)
 
     # ------------------------------------------------------------------ size
     def nbytes(self) -> int:
@@ -176,10 +184,12 @@ class FactorHistory:
         self.factors.append(kind=1 if point else 0, robust=int(robust), vars=(a, b), z=z, w=w)
         self.n_inputs += 1
 
-    def add_pending(self, point: bool, a: int, b: int, z: Array, w: Array) -> None:
-        """A loop closure the gate refused, kept for re-admission (``Policy.readmit``)."""
+    def add_pending(self, point: bool, a: int, b: int, z: Array, w: Array,
+                    u: float = 0.0) -> None:
+        """A loop closure the gate refused, kept for re-admission (``Policy.readmit``);
+        ``u``: its NIS over the gate's unscaled threshold when it was refused."""
         self.pending.append(kind=1 if point else 0, vars=(a, b), z=z, w=w, at=self.n_inputs,
-                            burst=0)
+                            burst=0, u=u)
 
     def age_pending(self, window: int) -> None:
         """Forget the refused closures older than ``window`` inputs."""
@@ -262,6 +272,8 @@ class FactorHistory:
         if self.pending.n or self.n_readmitted:  # only with Policy.readmit
             d["pending"] = self.pending.to_plain()
             d["n_readmitted"] = self.n_readmitted
+        if self.admitted_u:  # only with Policy.calibrate
+            d["admitted_u"] = np.asarray(self.admitted_u, dtype="<f8").tobytes()
         return d
 
     @classmethod
@@ -277,10 +289,14 @@ class FactorHistory:
         if "pending" in d:
             h.pending.load(d["pending"])
             h.n_readmitted = int(d["n_readmitted"])
+        if "admitted_u" in d:
+            h.admitted_u = np.frombuffer(d["admitted_u"], dtype="<f8").tolist()
         return h
 
-    def digest_update(self, h: Any) -> None:
-        """Hash the whole record into ``h`` (hashlib), in a fixed order."""
+    def digest_update(self, h: Any, calibrated: bool = False) -> None:
+        """Hash the whole record into ``h`` (hashlib), in a fixed order; the arrival ratios
+        (the pending table's ``u`` and ``admitted_u``) only with ``calibrated`` (maps
+        without ``Policy.calibrate`` keep the digests they had before it)."""
         plain = self.to_plain()
         for table in ("vars", "factors"):
             t = plain[table]
@@ -300,8 +316,11 @@ class FactorHistory:
             t = plain["pending"]
             h.update(f"pending {t['n']} {plain['n_readmitted']}".encode())
             for k in sorted(t):
-                if k != "n":
+                if k != "n" and (k != "u" or calibrated):
                     h.update(t[k])
+        if calibrated:
+            h.update(np.asarray(self.admitted_u, dtype="<f8").tobytes())
 
 
-__all__ = ["FactorHistory", "Group", "Prior", "Table", "FACTOR_BYTES", "VAR_BYTES"]
+__all__ = ["ADMITTED_KEEP", "FactorHistory", "Group", "Prior", "Table", "FACTOR_BYTES",
+           "VAR_BYTES"]

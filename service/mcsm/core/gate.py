@@ -141,5 +141,20 @@ def chart_variance(x: Array) -> float:
     return total
 
 
-__all__ = ["chi2_cdf", "chi2_quantile", "cycle_samples", "inverse_samples",
+def median(values: list[float]) -> float:
+    """The median of a non-empty list (sorted; the mean of the middle two for an even
+    count): the same bits for the same values on every machine."""
+    u, k = sorted(values), len(values)
+    return u[k // 2] if k % 2 else 0.5 * (u[k // 2 - 1] + u[k // 2])
+
+
+def lower_quantile(values: list[float], q: float) -> float:
+    """The ``q`` quantile of a non-empty list without interpolation: the sorted values' element
+    ``floor(q (k - 1))`` (the median for q = 0.5 and an odd count)."""
+    u = sorted(values)
+    return u[int(q * (len(u) - 1))]
+
+
+__all__ = ["median", "lower_quantile",
+           "chi2_cdf", "chi2_quantile", "cycle_samples", "inverse_samples",
            "nis_from_identity", "chart_variance"]

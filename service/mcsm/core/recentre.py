@@ -29,6 +29,7 @@ from mcsm.core.relinearize import (
     _admissible,
     _admit,
     _problem,
+    calibrating,
     host_rows,
     replace_rows,
     why_not,
@@ -72,7 +73,7 @@ def recentre_component(smap: Relinearizable, cid: int) -> ComponentRelin:
         admit = _admissible(h, ids, cand, prob) if len(cand) else none
         if len(admit):
             readmitted = len(admit)
-            undo = _admit(h, admit)
+            undo = _admit(h, admit, calibrating(pol))
             sol.close()
             x = prob.x
             prob = problem()

@@ -30,7 +30,7 @@ import numpy as np
 import numpy.typing as npt
 
 from mcsm.core import kernel, relin
-from mcsm.core.factors import IDENTITY, FactorHistory, Prior
+from mcsm.core.factors import ADMITTED_KEEP, IDENTITY, FactorHistory, Prior
 from mcsm.core.forest import Store
 from mcsm.core.gate import chi2_quantile
 from mcsm.core.storage import to_rows
@@ -62,6 +62,9 @@ TOLERANCE = 1e-6
 TRIM_QUANTILE = 0.999
 """A gated loop closure whose chi-square at the solution exceeds this quantile for its dof is
 left out of that relinearisation (the whole history contradicts it)."""
+CALIBRATE_QUANTILE = 0.25
+"""``Policy.calibrate`` scales the gate by this quantile of the recent arrival ratios of the
+closures admitted later (measured in docs/relinearisation.md, "Calibrating the gate")."""
 _MASK = 2**64 - 1
 
 
@@ -102,6 +105,11 @@ class Policy:
         re-centring also admits the component's refused closures it now agrees with (and the
         calm-time check is not needed) (:mod:`mcsm.core.recentre`; docs/relinearisation.md,
         "Re-centring")
+    calibrate : with ``readmit``, the gate learns from the refused closures admitted later:
+        a new closure's threshold is scaled by at least the lower quartile, over the last K of
+        them, of their NIS over the unscaled threshold when they were refused (at most the
+        gate scale's ``max``, 30 without one; docs/relinearisation.md, "Calibrating the
+        gate")
     """
 
     nis: float | None = None
@@ -111,6 +119,7 @@ class Policy:
     readmit: int | None = None
     spread: float = 1.0
     recentre: bool = False
+    calibrate: int | None = None
 
     def __post_init__(self) -> None:
         if not (isinstance(self.spread, (int, float)) and not isinstance(self.spread, bool)
@@ -132,6 +141,11 @@ class Policy:
                 raise InvalidOperation(f"relinearise {name} must be an integer >= 1, got {v!r}")
         if self.regate is not None and self.regate > REGATE_WINDOW:
             raise InvalidOperation(f"relinearise regate must be at most {REGATE_WINDOW}")
+        if self.calibrate is not None and not (
+                isinstance(self.calibrate, int) and not isinstance(self.calibrate, bool)
+                and 1 <= self.calibrate <= ADMITTED_KEEP and self.readmit is not None):
+            raise InvalidOperation(f"relinearise calibrate must be None or an integer in [1, "
+                                   f"{ADMITTED_KEEP}] with readmit, got {self.calibrate!r}")
 
     def to_plain(self) -> dict[str, Any]:
         d: dict[str, Any] = {"nis": self.nis, "every": self.every, "regate": self.regate,
@@ -142,6 +156,8 @@ class Policy:
             d["spread"] = float(self.spread)
         if self.recentre:  # likewise
             d["recentre"] = True
+        if self.calibrate is not None:  # likewise
+            d["calibrate"] = self.calibrate
         return d
 
     @classmethod
@@ -153,7 +169,12 @@ class Policy:
         return cls(None if nis is None else float(nis), None if every is None else int(every),
                    None if regate is None else int(regate), int(d.get("gap", 1)),
                    None if readmit is None else int(readmit), d.get("spread", 1.0),
-                   bool(recentre))
+                   bool(recentre), None if d.get("calibrate") is None else int(d["calibrate"]))
+
+
+def calibrating(policy: Policy | None) -> bool:
+    """Whether the map keeps the arrival ratios of the closures it admits later."""
+    return policy is not None and policy.calibrate is not None
 
 
 @dataclass(frozen=True)
@@ -347,7 +368,7 @@ def relinearize_component(smap: Relinearizable, cid: int, *, readmit_only: bool 
             admit = _admissible(h, ids, cand, prob)
             if len(admit):
                 readmitted = len(admit)
-                undo = _admit(h, admit)
+                undo = _admit(h, admit, calibrating(smap.policy))
                 sol.close()
                 fmask = h.vars["group"][h.factors["vars"][:, 0]] == cid
                 x = prob.x
@@ -420,16 +441,21 @@ def _admissible(h: FactorHistory, ids: npt.NDArray[np.int64], cand: npt.NDArray[
     return np.array(out, dtype=np.int64)
 
 
-def _admit(h: FactorHistory, rows: npt.NDArray[np.int64]) -> Callable[[], None]:
+def _admit(h: FactorHistory, rows: npt.NDArray[np.int64], calibrate: bool = False
+           ) -> Callable[[], None]:
     """Refused closures (pending rows) become factors of the history, gated (so a later
-    relinearisation trims them like any other), and leave the pending table; returns what
-    undoes it (a solve that fails after it)."""
+    relinearisation trims them like any other), and leave the pending table (with
+    ``calibrate``, their arrival ratios join ``admitted_u``); returns what undoes it (a solve
+    that fails after it)."""
     pend = h.pending
-    saved = (h.factors.n, h.n_inputs, h.n_readmitted, pend.to_plain())
+    saved = (h.factors.n, h.n_inputs, h.n_readmitted, pend.to_plain(), list(h.admitted_u))
 
     def undo() -> None:
         h.factors.n, h.n_inputs, h.n_readmitted = saved[:3]
         pend.load(saved[3])
+        h.admitted_u = saved[4]
+    if calibrate:
+        h.admitted_u = (h.admitted_u + pend["u"][rows].tolist())[-ADMITTED_KEEP:]
     for row in rows:
         a, b = (int(v) for v in pend["vars"][row])
         h.add_factor(bool(pend["kind"][row]), a, b, pend["z"][row].copy(),
@@ -537,5 +563,5 @@ def _marginalise_set(smap: Relinearizable, h: FactorHistory, cid: int,
 
 
 __all__ = ["Policy", "RECOMMENDED", "REPAIR_ONLY", "RelinReport", "ComponentRelin", "relinearize",
-           "relinearize_component", "marginalise", "why_not", "estimates",
-           "DEFAULT_HISTORY_BYTES", "REGATE_WINDOW", "TRIM_QUANTILE"]
+           "relinearize_component", "marginalise", "why_not", "estimates", "calibrating",
+           "DEFAULT_HISTORY_BYTES", "REGATE_WINDOW", "TRIM_QUANTILE", "CALIBRATE_QUANTILE"]

@@ -35,14 +35,16 @@ from mcsm.core.forest import (
     Verdict,
     check_frame_name,
 )
-from mcsm.core.gate import chi2_quantile
+from mcsm.core.gate import chi2_quantile, lower_quantile, median
 from mcsm.core.paper import paper_update, paper_update_tangent
 from mcsm.core.recentre import recentre
 from mcsm.core.relinearize import (
+    CALIBRATE_QUANTILE,
     DEFAULT_HISTORY_BYTES,
     REGATE_WINDOW,
     Policy,
     RelinReport,
+    calibrating,
     marginalise,
     relinearize,
     why_not,
@@ -65,16 +67,14 @@ DEFAULT_GATE_SCALE: dict[str, Any] = {"window": 15, "open": 3.0, "max": 30.0}
 [1, ``max``], where ``m`` is the median, over the last ``window`` gated closures, of their NIS
 over the chi-square median for their dof (measured in docs/design.md, "Relinearisation")."""
 DEFAULT_POLICY: Policy | None = Policy(nis=0.95, regate=1, gap=25, spread=1.3, recentre=True,
-                                       readmit=300)
+                                       readmit=300, calibrate=15)
 """The default automatic relinearisation: after an accepted loop closure with NIS above the
-0.95 quantile and at every gate failure (then the closure is gated again), at most once per 25
-inputs of a component, drawing 1.3 x the posterior's deviations (docs/relinearisation.md,
-"Redraw spread"); after every other accepted loop closure a re-centring (the component solved,
-each frame's samples moved so their mean is the solution), which also admits the closures the
-gate refused within the last 300 inputs that the solution agrees with (docs/relinearisation.md,
-"Re-centring", measures both on real data and on the wrong-closure benchmark). The defaults
-before: the same without ``recentre`` and ``readmit``, and before those
-:data:`mcsm.core.relinearize.REPAIR_ONLY`."""
+0.95 quantile and at every gate failure (then gated again), at most once per 25 inputs of a
+component, drawing 1.3 x the posterior's deviations; after every other accepted closure a
+re-centring (the component solved, its samples' means moved to the solution) that also admits
+the closures refused within the last 300 inputs that the solution agrees with; the gate scaled
+by the last 15 of those (docs/relinearisation.md). The defaults before: without
+``calibrate``; then without ``recentre``, ``readmit``; first ``REPAIR_ONLY``."""
 
 
 class StochasticMap(Forest):
@@ -267,7 +267,7 @@ class StochasticMap(Forest):
         if self._track_fail:
             h.update(bytes(self._gate_fail))
         if self.factor_history is not None:
-            self.factor_history.digest_update(h)
+            self.factor_history.digest_update(h, calibrated=calibrating(self.policy))
 
     def snapshot(self) -> dict[str, Any]:
         """The whole state (options, structure, edges, adaptive-inflation average, factor
@@ -346,7 +346,7 @@ class StochasticMap(Forest):
             return r
         cid = self._where[a]
         if r.kind == "rejected":
-            self._keep_refused(h, cid, a, b, point, zw, r.relin is not None)
+            self._keep_refused(h, cid, a, b, point, zw, r.relin is not None, r.verdict)
             return r
         self._record(h, cid, a, b, point, r.kind, r.verdict, zw, join)
         report = r.relin if r.relin is not None else self._automatic(h, cid, r)
@@ -392,7 +392,7 @@ class StochasticMap(Forest):
         g.since += 1
 
     def _keep_refused(self, h: FactorHistory, cid: int, a: str, b: str, point: bool,
-                      zw: tuple[Array, Array], burst: bool) -> None:
+                      zw: tuple[Array, Array], burst: bool, verdict: Verdict | None) -> None:
         """A closure the gate refused: kept for re-admission (``Policy.readmit``), marked if
         its component was just relinearised because of refusals (``regate``)."""
         p = self.policy
@@ -402,7 +402,10 @@ class StochasticMap(Forest):
         g = h.groups.get(cid)
         if g is None or g.tainted or a not in h.var_of or b not in h.var_of:
             return
-        h.add_pending(point, h.var_of[a], h.var_of[b], *zw)
+        v, u = verdict, 0.0
+        if self.gate is not None and v is not None and v.dof and v.nis:
+            u = float(v.nis) / chi2_quantile(self.gate, v.dof)  # its ratio, for calibrate
+        h.add_pending(point, h.var_of[a], h.var_of[b], *zw, u=u)
         if burst:  # the regate relinearisation ran for this closure
             h.pending["burst"][-1] = 1
 
@@ -551,24 +554,33 @@ class StochasticMap(Forest):
         chi-square median, over ``open``, clipped to [1, max] (1 without ``gate_scale``)."""
         if self.gate_scale is None or not self._gate_u:
             return 1.0
-        u = sorted(self._gate_u)
-        k = len(u)
-        med = u[k // 2] if k % 2 else 0.5 * (u[k // 2 - 1] + u[k // 2])
-        return min(max(med / self.gate_scale["open"], 1.0), self.gate_scale["max"])
+        return min(max(median(self._gate_u) / self.gate_scale["open"], 1.0),
+                   self.gate_scale["max"])
 
     def _verdict(self, prep: joint.Prepared, trusted: bool) -> Verdict:
         nis, dof = prep.nis, prep.dof
-        if self.gate is None:
-            return Verdict("accepted", nis, dof, None, "no gate")
-        if dof == 0:
-            return Verdict("accepted", nis, dof, None, "nothing varies: no test")
-        scale = self.gate_factor()
+        if self.gate is None or dof == 0:
+            return Verdict("accepted", nis, dof, None,
+                           "no gate" if self.gate is None else "nothing varies: no test")
+        scale, learnt = self.gate_factor(), self.learnt_factor()
+        why = f"gate scaled x{scale:.3g} by the recent NIS" if scale > 1.0 else ""
+        if learnt > scale:
+            scale, why = learnt, f"gate scaled x{learnt:.3g} by the closures admitted later"
         threshold = chi2_quantile(self.gate, dof) * scale
         if trusted:
             return Verdict("accepted", nis, dof, threshold, "trusted: gate bypassed")
         status = "rejected" if not nis <= threshold else "accepted"
-        return Verdict(status, nis, dof, threshold,
-                       f"gate scaled x{scale:.3g} by the recent NIS" if scale > 1.0 else "")
+        return Verdict(status, nis, dof, threshold, why)
+
+    def learnt_factor(self) -> float:
+        """``Policy.calibrate``'s scale: the lower quartile of the last K arrival ratios (NIS
+        over the unscaled threshold) of refused closures admitted later, clipped to [1, max]
+        (1 without it, or before it has 3 of them)."""
+        p, h = self.policy, self.factor_history
+        if p is None or p.calibrate is None or h is None or len(h.admitted_u) < 3:
+            return 1.0
+        q = lower_quantile(h.admitted_u[-p.calibrate:], CALIBRATE_QUANTILE)
+        return min(max(q, 1.0), self.gate_scale["max"] if self.gate_scale is not None else 30.0)
 
     def _gate_observed(self, verdict: Verdict) -> None:
         """Put a gated closure's NIS into the gate scale's window and its outcome into the
