@@ -87,6 +87,8 @@ CONFIGS: list[dict[str, Any]] = [
     {"name": "mcsm defaults", "options": {}},
     {"name": "mcsm defaults without calibration (the fourth round's defaults)",
      "options": {"relinearize": {**_default_policy(), "calibrate": None}}},
+    {"name": "mcsm defaults with the gate off (every input in: the least-squares optimum)",
+     "options": {"gate": None}},
     {"name": "mcsm defaults without re-centring (the defaults before it: nis 0.95, regate 1, "
              "gap 25, spread 1.3)",
      "options": {"relinearize": {**_default_policy(), "recentre": False, "readmit": None,

@@ -198,7 +198,9 @@ def transform_to_2d(pose: Array, point: Array) -> Array:
     return np.array([c * dx + s * dy, -s * dx + c * dy])
 
 
-def point_factor_2d(pose_key: int, landmark_key: int, xy: Array, cov: Array) -> gtsam.CustomFactor:
+def point_factor_2d(
+    pose_key: int, landmark_key: int, xy: Array, cov: Array, kernel: Any = None
+) -> gtsam.CustomFactor:
     """Factor for a Cartesian point sighting ``xy = R(θ)ᵀ (l - p) + noise``.
 
     The Jacobians are with respect to GTSAM's tangent coordinates: ``Pose2.retract`` perturbs in
@@ -213,6 +215,8 @@ def point_factor_2d(pose_key: int, landmark_key: int, xy: Array, cov: Array) -> 
         Observed point in the robot frame, metres.
     cov : (2, 2) float64
         Sighting covariance.
+    kernel : gtsam.noiseModel.mEstimator.Base, optional
+        A robust kernel on the whitened residual (Huber, Cauchy); None: least squares.
 
     Returns
     -------
@@ -234,7 +238,10 @@ def point_factor_2d(pose_key: int, landmark_key: int, xy: Array, cov: Array) -> 
             jacobians[1] = rt
         return h - measured
 
-    return gtsam.CustomFactor(gaussian(cov), [pose_key, landmark_key], error)
+    noise = gaussian(cov)
+    if kernel is not None:
+        noise = gtsam.noiseModel.Robust.Create(kernel, noise)
+    return gtsam.CustomFactor(noise, [pose_key, landmark_key], error)
 
 
 def compose_2d(pose: Array, delta: Array) -> Array:
@@ -251,9 +258,14 @@ def compose_2d(pose: Array, delta: Array) -> Array:
 
 
 def step_factors(
-    step: Step2D, estimate: dict[int, Array], landmarks: dict[int, Array], first_pose: Array
+    step: Step2D,
+    estimate: dict[int, Array],
+    landmarks: dict[int, Array],
+    first_pose: Array,
+    kernel: Any = None,
 ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
-    """Factors and initial values a step adds; updates the dead-reckoning guesses in place."""
+    """Factors and initial values a step adds; updates the dead-reckoning guesses in place
+    (``kernel``: a robust kernel on the point sightings, see :func:`point_factor_2d`)."""
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
     if step.odometry is None:
@@ -302,17 +314,23 @@ def step_factors(
             landmarks[sighting.landmark] = guess
             values.insert(L(sighting.landmark), gtsam.Point2(*guess))
         graph.add(
-            point_factor_2d(X(sighting.pose), L(sighting.landmark), sighting.xy, sighting.cov)
+            point_factor_2d(
+                X(sighting.pose), L(sighting.landmark), sighting.xy, sighting.cov, kernel
+            )
         )
     return graph, values
 
 
-def build_graph_2d(problem: PlanarProblem) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+def build_graph_2d(
+    problem: PlanarProblem, kernel: Any = None
+) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
     """The whole factor graph and a dead-reckoning initial estimate.
 
     Parameters
     ----------
     problem : PlanarProblem
+    kernel : gtsam.noiseModel.mEstimator.Base, optional
+        A robust kernel on the point sightings (None: least squares).
 
     Returns
     -------
@@ -326,7 +344,7 @@ def build_graph_2d(problem: PlanarProblem) -> tuple[gtsam.NonlinearFactorGraph, 
     estimate: dict[int, Array] = {}
     landmarks: dict[int, Array] = {}
     for step in problem.steps:
-        g, v = step_factors(step, estimate, landmarks, problem.first_pose)
+        g, v = step_factors(step, estimate, landmarks, problem.first_pose, kernel)
         graph.push_back(g)
         initial.insert(v)
     return graph, initial

@@ -108,6 +108,34 @@ def test_batch_optimum_equals_closed_form_least_squares() -> None:
     np.testing.assert_allclose(got, want, atol=1e-6)
 
 
+def test_a_robust_kernel_on_the_sightings_resists_one_wrong_sighting() -> None:
+    """With a sighting moved 8 m (20 sigma), least squares moves its landmark by metres; a
+    Huber kernel on the sightings moves it far less; on clean data the two optima are close."""
+    rng = np.random.default_rng(20120140)
+    problem, _ = _tiny_problem(rng)
+    ids = sorted({s.landmark for st in problem.steps for s in st.sightings})
+    huber = gtsam.noiseModel.mEstimator.Huber.Create(1.345)
+
+    def landmarks(prob: gs.PlanarProblem, kernel: object = None) -> np.ndarray:
+        graph, initial = gs.build_graph_2d(prob, kernel)
+        opt = gs.batch_optimum(graph, initial)
+        return np.stack([gs.landmark_positions(opt, ids)[j] for j in ids])
+
+    clean_ls, clean_huber = landmarks(problem), landmarks(problem, huber)
+    assert np.max(np.linalg.norm(clean_ls - clean_huber, axis=1)) < 0.2
+    steps = list(problem.steps)
+    k = 4
+    bad = steps[k].sightings[0]
+    moved = gs.Sighting2D(bad.pose, bad.landmark, np.asarray(bad.xy) + [8.0, 0.0], bad.cov)
+    steps[k] = gs.Step2D(steps[k].pose, steps[k].odometry, (moved, *steps[k].sightings[1:]))
+    wrong = gs.PlanarProblem(steps, problem.first_pose)
+    j = ids.index(bad.landmark)
+    pulled_ls = np.linalg.norm(landmarks(wrong)[j] - clean_ls[j])
+    pulled_huber = np.linalg.norm(landmarks(wrong, huber)[j] - clean_huber[j])
+    assert pulled_ls > 1.0
+    assert pulled_huber < 0.5 * pulled_ls
+
+
 def test_isam2_reaches_the_batch_optimum_on_a_linear_problem() -> None:
     rng = np.random.default_rng(20120138)
     problem, _ = _tiny_problem(rng)
