@@ -67,6 +67,35 @@ def test_a_refused_closure_is_admitted_after_a_relinearisation_and_a_wrong_one_i
     assert h.factors["robust"][-5:].all()
 
 
+def test_with_the_gate_off_every_closure_is_in_and_none_is_trimmed() -> None:
+    """``gate=None`` (docs/relinearisation.md, "the gate off"): the wrong closure (3 m) goes
+    in with the rest, no factor is trimmable, and a relinearisation lands on the least-squares
+    posterior of every input, the wrong one included."""
+    m = StochasticMap(N, gate=None, relinearize=POLICY)
+    seen: list[np.ndarray] = []
+    update = m.update
+
+    def recording(a: str, b: str, x: np.ndarray, trusted: bool = False) -> object:
+        seen.append(x[:, 0].copy())
+        return update(a, b, x, trusted=trusted)
+    m.update = recording  # type: ignore[method-assign]
+    rs = script(m)
+    assert all(r.kind != "rejected" for r in rs)  # type: ignore[attr-defined]
+    h = m.factor_history
+    assert h is not None and h.pending.n == 0
+    assert not h.factors["robust"].any()
+    rep = m.relinearize()
+    assert rep.components[0].trimmed == 0
+    # each input weighted by the information of its own samples (x is independent of the
+    # other coordinates up to the samples' 1/sqrt(N) correlations)
+    w = np.array([1.0 / x.var() for x in seen])
+    least_squares = float(np.sum(w * [x.mean() for x in seen]) / w.sum())
+    assert abs(m.query("p0", "p1")[:, 0].mean() - least_squares) < 1e-3
+    without_wrong = float(np.sum(np.delete(w * [x.mean() for x in seen], 4))
+                          / np.delete(w, 4).sum())
+    assert least_squares - without_wrong > 0.08  # the wrong closure's pull: 0.1 m
+
+
 def test_pending_refusals_are_state_and_replay_bit_identical() -> None:
     a = StochasticMap(N, relinearize=POLICY)
     script(a, stop=9)
