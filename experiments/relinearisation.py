@@ -10,7 +10,8 @@
   options, N = 200): the share of true closures the gate refused.
 * ``robust``: Victoria Park's batch optimum with a robust kernel on the sightings (GTSAM's
   Huber 1.345 and Cauchy 1, each from the least-squares optimum), its distance from the
-  least-squares one, and the streamed map's landmark RMS against each.
+  least-squares one, the streamed map's landmark RMS against each, and per landmark the
+  sightings the map leaves out at its end.
 * ``landmarks``: the paper's §6 landmarks with wrong re-sightings as
   ``experiments/outliers.py`` makes them: RMS, NEES, recall, the relinearisations, and the RMS
   after one more.
@@ -123,6 +124,55 @@ def _rms(a: Any, b: Any) -> tuple[float, float]:
     return float(np.sqrt(np.mean(d**2))), float(d.max())
 
 
+def left_out(m: StochasticMap, ds: Any) -> str:
+    """Per landmark, the sightings the map leaves out at the end: those never admitted (in the
+    file, not in the history) and the gated ones whose chi-square at the solution of the
+    largest component's history exceeds the trim quantile (with their chi-squares)."""
+    from mcsm.core import relin
+    from mcsm.core import relinearize as rz
+
+    h = m.factor_history
+    assert h is not None
+    cid = max(m._comps, key=lambda k: len(m._comps[k]))
+    ids = h.group_vars(cid)
+    fmask = h.vars["group"][h.factors["vars"][:, 0]] == cid
+    prob = rz._problem(m, h, cid, ids, fmask, [], h.vars["alive"][ids].astype(np.uint8))
+    relin.solve(prob, max_iter=rz.MAX_ITERATIONS, tol=rz.TOLERANCE).close()
+    local = np.full(h.vars.n, -1, dtype=np.int64)
+    local[ids] = np.arange(len(ids))
+    rows = np.flatnonzero(fmask & (h.factors["robust"] != 0))
+    thr = rz._trim_thresholds(h.factors["robust"][rows], h.factors["w"][rows],
+                              h.factors["kind"][rows])
+    out: dict[str, list[str]] = {}
+    for k, r in enumerate(rows):
+        a, b = (int(local[v]) for v in h.factors["vars"][r])
+        one = relin.Problem(
+            vkind=np.ascontiguousarray(prob.vkind[[a, b]]), vfixed=np.array([1, 0], np.uint8),
+            vkept=np.array([0, 1], np.uint8), x=np.ascontiguousarray(prob.x[[a, b]]),
+            fkind=h.factors["kind"][r:r + 1].astype(np.int32),
+            fvars=np.array([[0, 1]], np.int32), fz=np.ascontiguousarray(h.factors["z"][r:r + 1]),
+            fw=np.ascontiguousarray(h.factors["w"][r:r + 1]), pvoff=np.zeros(1, np.int64),
+            pvars=np.zeros(0, np.int32), pdoff=np.zeros(1, np.int64),
+            prows=np.zeros(0, np.int64), pdata=np.zeros(0),
+            pose_active=prob.pose_active, point_active=prob.point_active)
+        with relin.solve(one, max_iter=0) as s1:
+            chi2 = s1.stats.cost_before
+        if chi2 > thr[k]:
+            name = h.frame_of.get(int(h.factors["vars"][r][1]), "a removed frame")
+            out.setdefault(name, []).append(f"{chi2:.0f}")
+    in_file: dict[str, int] = {}
+    for c in ds.constraints:
+        if c.kind == "landmark":
+            in_file[f"l{c.target}"] = in_file.get(f"l{c.target}", 0) + 1
+    kept = h.factors["vars"][:h.factors.n][h.factors["kind"][:h.factors.n] == 1, 1]
+    counts = np.bincount(kept, minlength=h.vars.n)
+    never = {f: in_file[f] - int(counts[h.var_of[f]]) for f in in_file if f in h.var_of}
+    parts = [f"{f}: {in_file[f]} in the file, {never.get(f, 0)} never admitted, "
+             f"{len(out.get(f, []))} trimmed (chi-square {', '.join(out.get(f, [])) or '-'})"
+             for f in sorted(set(out) | {f for f, v in never.items() if v}, key=str)]
+    return "; ".join(parts) or "none"
+
+
 def robust(options: dict[str, Any], seed: int, n: int) -> str:
     from mcsm_client.players import play
 
@@ -132,8 +182,9 @@ def robust(options: dict[str, Any], seed: int, n: int) -> str:
     play(ds, m, rng=np.random.default_rng(seed), n_samples=n, bounded=True)
     xy = np.stack([m.marginal(f"x{min(ref['pose_ids'])}", f"l{j}")[0][:2]
                    for j in ref["landmark_ids"]])
-    return "; ".join(f"vs {k}: RMS {r:.3f} m, worst {w:.2f} m"
-                     for k, (r, w) in ((k, _rms(xy, v)) for k, v in opt.items()))
+    return ("; ".join(f"vs {k}: RMS {r:.3f} m, worst {w:.2f} m"
+                      for k, (r, w) in ((k, _rms(xy, v)) for k, v in opt.items()))
+            + (f"; left out at the end: {left_out(m, ds)}" if m.factor_history else ""))
 
 
 def robust_optima_line() -> str:

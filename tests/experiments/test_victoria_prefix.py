@@ -65,3 +65,24 @@ def test_victoria_park_prefix_with_the_defaults_is_not_dead_reckoning() -> None:
     rms = float(np.sqrt(np.mean(np.sum(err**2, axis=1))))
     assert rms < 5.0, rms
     assert mine.gated > 300 and mine.rejected <= 45, (mine.rejected, mine.gated)
+
+
+def test_left_out_names_the_refused_revisit_and_nothing_with_the_gate_off() -> None:
+    """``experiments.relinearisation.left_out`` (docs/relinearisation.md, "What the defaults
+    leave out"): on the first 700 poses the defaults refuse two sightings for good, among them
+    the revisit at line 667 (l436, NIS above 100 for 2 dof); with the gate off nothing is left
+    out."""
+    from experiments.realdata import truncate
+    from experiments.relinearisation import left_out
+
+    data = gtsam_data_dir()
+    if data is None or not (data / "victoria_park.txt").is_file():
+        pytest.fail("the eval extra (gtsam) ships victoria_park.txt; install it")
+    ds = truncate(read_dataset(data / "victoria_park.txt"), 700)
+    said = {}
+    for name, opts in (("defaults", {}), ("gate off", {"gate": None})):
+        m = StochasticMap(100, **opts)
+        play(ds, m, rng=np.random.default_rng(1), n_samples=100, bounded=True)
+        said[name] = left_out(m, ds)
+    assert "l436: 11 in the file, 1 never admitted, 0 trimmed" in said["defaults"]
+    assert said["gate off"] == "none"
