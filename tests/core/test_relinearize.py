@@ -9,7 +9,7 @@ from mcsm import StochasticMap
 from mcsm.core import relin
 from mcsm.core.quat import qmul, rotation_matrix
 from mcsm.core.relinearize import Policy, _problem
-from mcsm.errors import InvalidOperation
+from mcsm.errors import InvalidOperation, NumericalError
 from mcsm_client.sampling import sample_planar
 from scipy.optimize import least_squares
 
@@ -147,6 +147,19 @@ def test_the_kernel_solve_agrees_with_an_independent_least_squares(planar: bool)
     with relin.solve(prob, max_iter=50, tol=1e-15) as sol:
         r_ours, _ = sol.marginal()
         assert sol.stats.active == ((0b011 << 6 | 0b100011) if planar else 0b111_111111)
+        kept_stats = sol.stats
+    # A re-centring's solve keeps no factor: the same solution bit for bit, one factorisation
+    # fewer, and no marginal or redraw from it.
+    x_kept = prob.x.copy()
+    prob.x[:] = x0
+    with relin.solve(prob, max_iter=50, tol=1e-15, keep_factor=False) as bare:
+        assert np.array_equal(prob.x, x_kept)
+        assert bare.stats.cost_after == kept_stats.cost_after
+        assert bare.stats.factorisations == kept_stats.factorisations - 1
+        with pytest.raises(NumericalError):
+            bare.marginal()
+        with pytest.raises(NumericalError):
+            bare.redraw(np.zeros((8, 7, n)), np.full(len(ids), -1, dtype=np.int64), 1)
     free = np.flatnonzero(prob.vfixed == 0)
     kinds = prob.vkind
     local = np.searchsorted(ids, h.factors["vars"][fmask])

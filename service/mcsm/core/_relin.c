@@ -29,7 +29,7 @@
 
 #define MAX_TRIES 10
 
-int mr_version(void) { return 3; }
+int mr_version(void) { return 4; }
 long mr_problem_size(void) { return (long)sizeof(mr_problem); }
 
 static int full_dim(int kind) { return kind == 0 ? 6 : 3; }
@@ -378,8 +378,9 @@ static int check_problem(const mr_problem *P) {
     return MR_OK;
 }
 
-/* Solve (max_iter > 0) from P->x, then factorise at the result; P->state keeps the factor
- * for mr_redraw / mr_marginal. stats: 0 iterations, 1 cost before, 2 cost after, 3 the
+/* Solve (max_iter > 0) from P->x, then factorise at the result (unless keep_factor is 0: the
+ * same x, no factor kept); P->state keeps the factor for mr_redraw / mr_marginal. stats:
+ * 0 iterations, 1 cost before, 2 cost after, 3 the
  * active coordinates (pose bits, point bits << 6),
  * 4 scalars solved, 5 kept scalars, 6 values in L, 7 factorisations, 8 dead scalars,
  * 9 LM damping at the end, 10 loop closures trimmed. */
@@ -496,14 +497,17 @@ int mr_solve(mr_problem *P) {
         if (cost != cost) goto out;
         set_hdiag(S);
     }
-    double last = evaluate(&C, P->x, 1, prior_r, prior_j);
-    if (last != last) goto out;
-    set_hdiag(S);
-    mr_factorise(S, 0.0, slot);
-    nfact++;
-    mr_forward(S, S->g, S->y);
     long ndead = 0;
-    for (long i = 0; i < nscal; i++) ndead += S->dead[i];
+    if (P->keep_factor || P->max_iter == 0) {
+        double last = evaluate(&C, P->x, 1, prior_r, prior_j);
+        if (last != last) goto out;
+        set_hdiag(S);
+        mr_factorise(S, 0.0, slot);
+        nfact++;
+        mr_forward(S, S->g, S->y);
+        for (long i = 0; i < nscal; i++) ndead += S->dead[i];
+        S->factored = 1;
+    }
     P->stats[0] = (double)it;
     P->stats[1] = cost0;
     P->stats[2] = cost;

@@ -58,6 +58,8 @@ typedef struct {
     int64_t point_active;   /* bit k: point coordinate k is solved for */
     int64_t max_iter;       /* 0: factorise at x only (marginalisation) */
     double tol;             /* stop when an accepted step lowers the cost by less than tol * cost */
+    int64_t keep_factor;    /* 1: factorise at the result and keep it (redraw, marginals); 0: the
+                             * solution and its costs only (a re-centring), the same x */
     double stats[11];       /* out: see mr_solve */
     void *state;            /* the last factorisation (mr_free) */
 } mr_problem;
@@ -117,6 +119,7 @@ typedef struct {
     uint8_t *dead;    /* scalar with no information (pivot below tolerance): held fixed */
     uint8_t *off;     /* factor left out (trimmed) */
     long nval, nscal;
+    int factored;     /* 1: val holds the factorisation at the solution (keep_factor) */
 } mr_state;
 
 /* _relin_order.c, _relin_chol.c */

@@ -358,7 +358,7 @@ void mr_transform(const double *a, int invert, const double *b, const int32_t *k
  * ascending variable order) and y = L^-1 g. Rows of dimensions without information are 0. */
 int mr_marginal(const mr_problem *P, double *R, double *d) {
     const mr_state *S = P->state;
-    if (S == NULL) return MR_BAD_ARGS;
+    if (S == NULL || !S->factored) return MR_BAD_ARGS;
     long kp = S->kept_pos, s0 = S->soff[kp], m = S->nscal - s0;
     long *colbase = malloc(sizeof(long) * (size_t)(P->nv ? P->nv : 1));
     if (colbase == NULL) return MR_NO_MEMORY;
@@ -587,7 +587,7 @@ static int draw(const mr_problem *P, const mr_state *S, double *out, const int64
 int mr_redraw(const mr_problem *P, double *out, const int64_t *slot, long n, uint64_t key,
               long exact_max, double spread, double rot_cap) {
     const mr_state *S = P->state;
-    if (S == NULL || n < 2 || !(spread >= 1.0 && spread <= 4.0) || !(rot_cap > 0.0))
+    if (S == NULL || !S->factored || n < 2 || !(spread >= 1.0 && spread <= 4.0) || !(rot_cap > 0.0))
         return MR_BAD_ARGS;
     long kp = S->kept_pos, s0 = S->soff[kp], K = S->nscal - s0;
     int spreading = spread != 1.0;

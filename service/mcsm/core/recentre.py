@@ -64,7 +64,7 @@ def recentre_component(smap: Relinearizable, cid: int) -> ComponentRelin:
 
     prob = problem()
     start = prob.x.copy()  # the frames' means (estimates)
-    sol = relin.solve(prob, max_iter=MAX_ITERATIONS, tol=TOLERANCE)
+    sol = relin.solve(prob, max_iter=MAX_ITERATIONS, tol=TOLERANCE, keep_factor=False)
     readmitted, undo = 0, None
     try:
         pol = smap.policy
@@ -78,7 +78,7 @@ def recentre_component(smap: Relinearizable, cid: int) -> ComponentRelin:
             x = prob.x
             prob = problem()
             prob.x[:] = x  # from the solution without them
-            sol = relin.solve(prob, max_iter=MAX_ITERATIONS, tol=TOLERANCE)
+            sol = relin.solve(prob, max_iter=MAX_ITERATIONS, tol=TOLERANCE, keep_factor=False)
         with sol:
             st = sol.stats
         _shift(smap, cid, ids[np.flatnonzero(kept)], rows, flags, start[kept != 0],

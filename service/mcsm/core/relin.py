@@ -25,7 +25,7 @@ from mcsm.errors import NumericalError
 Array = npt.NDArray[np.float64]
 Ints = npt.NDArray[np.int32]
 
-RELIN_VERSION = 3
+RELIN_VERSION = 4
 SPREAD_ROTATION_CAP = 0.3
 """Radians: a redraw's ``spread`` is lowered for a pose whose rotation deviations would get an
 RMS above this (to this, never below the posterior itself): the chart and the filter's updates
@@ -50,7 +50,7 @@ class _Problem(ctypes.Structure):
                 ("ftrim", _P),
                 ("np", _I64), ("pvoff", _P), ("pvars", _P), ("pdoff", _P), ("prows", _P),
                 ("pdata", _P), ("pose_active", _I64), ("point_active", _I64),
-                ("max_iter", _I64), ("tol", _D), ("stats", _D * 11),
+                ("max_iter", _I64), ("tol", _D), ("keep_factor", _I64), ("stats", _D * 11),
                 ("state", _P)]
 
 
@@ -202,7 +202,8 @@ class SolveStats:
 class Solution:
     """A finished solve: its statistics and the factorisation (freed with :meth:`close`)."""
 
-    def __init__(self, problem: Problem, max_iter: int, tol: float) -> None:
+    def __init__(self, problem: Problem, max_iter: int, tol: float,
+                 keep_factor: bool = True) -> None:
         self.problem = problem
         ftrim = problem.ftrim if problem.ftrim is not None else np.zeros(len(problem.fkind))
         self._arrays: list[npt.NDArray[Any]] = [np.ascontiguousarray(a) for a in (
@@ -224,7 +225,7 @@ class Solution:
         s.pvoff, s.pvars, s.pdoff, s.prows, s.pdata = ptr(pvoff), ptr(pvars), ptr(pdoff), \
             ptr(prows), ptr(pdata)
         s.pose_active, s.point_active = int(problem.pose_active), int(problem.point_active)
-        s.max_iter, s.tol = int(max_iter), float(tol)
+        s.max_iter, s.tol, s.keep_factor = int(max_iter), float(tol), int(keep_factor)
         s.state = None
         self._s = s
         rc = _lib.mr_solve(ctypes.byref(s))
@@ -272,16 +273,20 @@ class Solution:
         return r, d
 
 
-def solve(problem: Problem, *, max_iter: int = 20, tol: float = 1e-6) -> Solution:
+def solve(problem: Problem, *, max_iter: int = 20, tol: float = 1e-6,
+          keep_factor: bool = True) -> Solution:
     """Gauss-Newton / Levenberg-Marquardt from ``problem.x`` (updated in place), then the
-    factorisation at the result (``max_iter=0``: the factorisation at ``x`` only).
+    factorisation at the result (``max_iter=0``: the factorisation at ``x`` only). With
+    ``keep_factor=False`` the solution and its statistics only (the same ``x``, one
+    factorisation fewer: a re-centring); :meth:`Solution.redraw` and
+    :meth:`Solution.marginal` then raise.
 
     Raises
     ------
     NumericalError
         If the problem is malformed or its cost is not finite.
     """
-    return Solution(problem, max_iter, tol)
+    return Solution(problem, max_iter, tol, keep_factor)
 
 
 __all__ = ["Problem", "Solution", "SolveStats", "moments", "means", "recentre", "spread",
