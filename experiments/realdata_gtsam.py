@@ -223,6 +223,39 @@ def batch_lm(graph: gtsam.NonlinearFactorGraph, init: gtsam.Values,
     return out, time.process_time() - t0
 
 
+def trimmed_lm(problem: Problem, graph: gtsam.NonlinearFactorGraph, init: gtsam.Values,
+               quantile: float = 0.999, rounds: int = 5
+               ) -> tuple[gtsam.Values, list[int], float]:
+    """Batch LM without the inputs that are outliers at its own optimum: every sighting and
+    loop closure (not odometry) whose chi-square at the optimum exceeds ``quantile`` for its
+    dimension (the map's trim rule) is left out and LM runs again from there, until the set
+    left out is stable (at most ``rounds`` times). ``graph`` is :func:`whole_graph`'s (the
+    anchor prior, then one factor per edge in arrival order). The optimum, the edges left out
+    (indices in arrival order) and the CPU seconds."""
+    from mcsm.core.gate import chi2_quantile
+
+    edges = [e for _, es in problem.steps for e in es]
+    if graph.size() != len(edges) + 1:
+        raise ValueError("graph is not whole_graph(problem)'s")
+    gated = [k for k, e in enumerate(edges) if e.kind != "odometry"]
+    limit = {d: chi2_quantile(quantile, d) for d in {graph.at(k + 1).dim() for k in gated}}
+    values, secs = batch_lm(graph, init)
+    out: list[int] = []
+    for _ in range(rounds):
+        bad = [k for k in gated
+               if 2.0 * graph.at(k + 1).error(values) > limit[graph.at(k + 1).dim()]]
+        if bad == out:
+            break
+        out = bad
+        left, kept = set(out), gtsam.NonlinearFactorGraph()
+        for i in range(graph.size()):
+            if i - 1 not in left:
+                kept.push_back(graph.at(i))
+        values, s = batch_lm(kept, values)
+        secs += s
+    return values, out, secs
+
+
 def marginal_covariances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
                          problem: Problem, poses: list[int], landmarks: list[int]
                          ) -> tuple[Array, Array]:

@@ -203,3 +203,67 @@ def test_recentring_keeps_w10000_at_the_floor_of_its_inputs(
     assert plain["batch LM fed the same sample means"] == floor  # the same inputs
     assert rc["map"] <= 1.5 * floor
     assert rc["map"] < 0.5 * plain["map"]
+
+
+def test_trimmed_reference_leaves_out_a_wrong_sighting(problems: dict[str, rd.Problem]) -> None:
+    """``--reference trimmed``: batch LM without the inputs beyond the 0.999 quantile at its
+    own optimum. A re-sighting moved 3 m on Victoria Park's first 400 steps is left out (and
+    nothing else), and the result is batch LM of the graph without it."""
+    import dataclasses
+
+    import gtsam
+
+    from experiments import realdata_gtsam as rg
+
+    p = problems["victoria"].prefix(400)
+    seen: set[int] = set()
+    flat, target = 0, None
+    steps = []
+    for pose, edges in p.steps:
+        out = []
+        for e in edges:
+            if e.is_point and e.j in seen and target is None and flat > 300:
+                e = dataclasses.replace(e, mean=e.mean + np.array([3.0, 0.0]))
+                target = flat
+            if e.is_point:
+                seen.add(e.j)
+            out.append(e)
+            flat += 1
+        steps.append((pose, out))
+    assert target is not None
+    bad = dataclasses.replace(p, steps=steps)
+    graph, init = rg.whole_graph(bad)
+    ls, _ = rg.batch_lm(graph, init)
+    trimmed, left_out, secs = rg.trimmed_lm(bad, graph, ls)
+    assert left_out == [target] and secs > 0
+    kept = gtsam.NonlinearFactorGraph()
+    for i in range(graph.size()):
+        if i != target + 1:
+            kept.push_back(graph.at(i))
+    ref, _ = rg.batch_lm(kept, ls)
+    lm = bad.edges()[target].j
+    a, b, c = (np.asarray(v.atPoint2(gtsam.symbol_shorthand.L(lm))) for v in (trimmed, ref, ls))
+    np.testing.assert_allclose(a, b, atol=1e-6)
+    assert np.linalg.norm(c - b) > 10 * np.linalg.norm(a - b) + 0.05  # LS is pulled away
+    with pytest.raises(ValueError):
+        rg.trimmed_lm(p.prefix(300), graph, ls)  # another problem's graph
+
+
+def test_benchmark_with_the_trimmed_reference(tmp_path) -> None:
+    """``--reference trimmed`` scores every row against the trimmed optimum and adds the
+    least-squares one as a row of its own."""
+    root = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1",
+           "PYTHONPATH": str(root)}
+    cmd = [sys.executable, str(root / "benchmarks" / "realdata.py"), "--datasets", "victoria",
+           "--max-steps", "400", "--n-samples", "40", "--seeds", "3", "--out", str(tmp_path),
+           "--no-plot", "--no-tuned", "--configs", "mcsm defaults", "--reference", "trimmed"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, env=env)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    with open(tmp_path / "victoria_rows.csv") as f:
+        by = {r["estimator"]: r for r in csv.DictReader(f)}
+    assert float(by["GTSAM batch LM, trimmed (reference)"]["final_m"]) == 0.0
+    ls = float(by["GTSAM batch LM, least squares (every input)"]["final_m"])
+    assert np.isfinite(ls) and ls >= 0.0
+    assert np.isfinite(float(by["mcsm defaults"]["final_m"]))
+    assert "trimmed LM:" in proc.stdout
