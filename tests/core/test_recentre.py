@@ -224,3 +224,47 @@ def test_the_recentring_kernel_gives_the_same_bits_copied_or_in_place() -> None:
     rest = [f for f in range(9) if f not in idx]
     assert np.array_equal(out[rest], plain[rest])
     assert np.isnan(out[9:]).all()  # rows past the component's length are not written
+
+
+def test_a_recentring_orders_its_solve_freely_and_finds_the_same_solution() -> None:
+    """A re-centring redraws nothing, so its solve need not eliminate the kept frames last:
+    on a bounded planar map (each older pose removed, landmarks seen again) the free
+    minimum-degree ordering fills less and lands on the kept-last ordering's solution."""
+    from mcsm.core import relin
+    from mcsm.core.relinearize import _problem
+
+    from tests.core.test_relinearize import step_at
+
+    rng = np.random.default_rng(20261126)
+    n = 200
+    m = StochasticMap(n, gate=None, relinearize=None)
+    marks = np.array([[2.0, 1.0, 0.0], [4.0, -1.0, 0.0], [6.0, 2.0, 0.0], [3.0, 3.0, 0.0]])
+    for k in range(40):
+        m.update(f"x{k}", f"x{k + 1}", step_at(rng, n, True))
+        for j in range(len(marks)):
+            if (k + j) % 3 == 0:  # the mark as seen from where the map has the pose
+                pose = m.query("x0", f"x{k + 1}").mean(axis=0)
+                yaw = 2.0 * np.arctan2(pose[6], pose[3])
+                d = marks[j] - pose[:3]
+                seen = [np.cos(yaw) * d[0] + np.sin(yaw) * d[1],
+                        -np.sin(yaw) * d[0] + np.cos(yaw) * d[1], 0.0]
+                p = seen + 0.05 * rng.standard_normal((n, 3)) * [1, 1, 0]
+                m.update(f"x{k + 1}", f"l{j}", p)
+        if k >= 1:
+            m.remove(f"x{k}")
+    h = m.factor_history
+    assert h is not None
+    cid = m._where["x0"]
+    ids = h.group_vars(cid)
+    fmask = h.vars["group"][h.factors["vars"][:, 0]] == cid
+    alive = h.vars["alive"][ids].astype(np.uint8)
+    assert 0 < int(alive.sum()) < len(ids)  # removed poses and kept frames
+    out = {}
+    for name, kept in (("kept last", alive), ("free", np.zeros_like(alive))):
+        prob = _problem(m, h, cid, ids, fmask, [], kept)
+        with relin.solve(prob, max_iter=20, tol=1e-12, keep_factor=False) as sol:
+            out[name] = (prob.x.copy(), sol.stats.factor_values)
+    (x_kept, nz_kept), (x_free, nz_free) = out["kept last"], out["free"]
+    assert nz_free <= nz_kept
+    assert np.max(np.abs(x_free[:, :3] - x_kept[:, :3])) < 1e-9
+    assert np.max(1.0 - np.abs(np.sum(x_free[:, 3:] * x_kept[:, 3:], axis=1))) < 1e-12

@@ -55,12 +55,15 @@ def recentre_component(smap: Relinearizable, cid: int) -> ComponentRelin:
     gset = set(ids.tolist())
     priors = [p for p in h.priors if int(p.vars[0]) in gset]
     kept = h.vars["alive"][ids].astype(np.uint8)
+    free = np.zeros_like(kept)
     # a component in host memory is read in place; else from a host copy, uploaded after
     rows, flags = (c.rows, c.point_flags) if isinstance(c, Component) else host_rows(smap, cid)
 
     def problem() -> relin.Problem:
+        # No redraw follows, so no variable need be eliminated last: the ordering is minimum
+        # degree over all of them (less fill where removed poses saw the kept landmarks)
         fmask = h.vars["group"][h.factors["vars"][:, 0]] == cid
-        return _problem(smap, h, cid, ids, fmask, priors, kept, (rows, flags))
+        return _problem(smap, h, cid, ids, fmask, priors, free, (rows, flags))
 
     prob = problem()
     start = prob.x.copy()  # the frames' means (estimates)
