@@ -360,3 +360,23 @@ def test_the_spread_stops_at_the_rotation_cap() -> None:
         w = wide.query("w0", f"w{k}")
         assert np.array_equal(exact.query("w0", f"w{k}"), w)
         assert yaw_rms(w) > relin.SPREAD_ROTATION_CAP
+
+
+def test_trim_thresholds_follow_their_definition() -> None:
+    """Per factor: the trim quantile for its live dimensions (the nonzero diagonal of its
+    square-root information) if it is a gated closure, else 0 (the vectorised form against
+    the definition, factor by factor)."""
+    from mcsm.core.gate import chi2_quantile
+    from mcsm.core.relinearize import TRIM_QUANTILE, _trim_thresholds
+
+    rng = np.random.default_rng(20261126)
+    n = 500
+    robust = (rng.random(n) < 0.6).astype(np.uint8)
+    kind = rng.integers(0, 2, n).astype(np.int32)
+    w = rng.standard_normal((n, 21)) * (rng.random((n, 21)) < 0.7)
+    got = _trim_thresholds(robust, w, kind)
+    for i in range(n):
+        diag = [0, 2, 5, 9, 14, 20] if kind[i] == 0 else [0, 2, 5]
+        dof = int(np.count_nonzero(w[i, diag]))
+        want = chi2_quantile(TRIM_QUANTILE, dof) if robust[i] and dof else 0.0
+        assert got[i] == want

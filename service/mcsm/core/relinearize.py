@@ -274,11 +274,11 @@ def _trim_thresholds(robust: npt.NDArray[np.uint8], w: Array, kind: npt.NDArray[
     nonzero diagonal of its square-root information) if it is a gated loop closure, else 0."""
     diag6 = w[:, [0, 2, 5, 9, 14, 20]] != 0.0
     diag3 = w[:, [0, 2, 5]] != 0.0
-    dof = np.where(kind == 0, diag6.sum(axis=1), diag3.sum(axis=1))
-    table = {d: chi2_quantile(TRIM_QUANTILE, int(d)) for d in np.unique(dof) if d > 0}
+    dof = np.where(robust != 0, np.where(kind == 0, diag6.sum(axis=1), diag3.sum(axis=1)), 0)
     out = np.zeros(len(robust))
-    for i in np.flatnonzero(robust):
-        out[i] = table.get(int(dof[i]), 0.0)
+    for d in np.unique(dof):  # at most 6 distinct values
+        if d > 0:
+            out[dof == d] = chi2_quantile(TRIM_QUANTILE, int(d))
     return out
 
 
