@@ -91,14 +91,15 @@ def bootstrap() -> str:
     if os.environ.get("MCSM_KERNEL_LIBRARY"):
         return f"mcsm: from {ROOT}, kernel {os.environ['MCSM_KERNEL_LIBRARY']}"
     tree = ast.parse((ROOT / "setup.py").read_text())
-    flags = next(ast.literal_eval(n.value) for n in tree.body if isinstance(n, ast.Assign)
-                 and getattr(n.targets[0], "id", "") == "KERNEL_FLAGS")
+    names = {getattr(n.targets[0], "id", ""): n.value for n in tree.body
+             if isinstance(n, ast.Assign)}
+    flags = ast.literal_eval(names["KERNEL_FLAGS"])
+    sources = [str(ROOT / s) for s in ast.literal_eval(names["SOURCE"])]  # the kernel's files
     cpu = Path("/proc/cpuinfo").read_text() if Path("/proc/cpuinfo").exists() else ""
     extra = ["-mavx2"] if " avx2" in cpu and platform.machine() == "x86_64" else []
     lib = Path(tempfile.mkdtemp(prefix="mcsm-kernel-")) / "kernel.so"
-    subprocess.run(["gcc", *flags, *extra, "-shared", "-fPIC",
-                    str(ROOT / "service/mcsm/core/_kernel.c"), "-o", str(lib)], check=True,
-                   timeout=300)
+    subprocess.run(["gcc", *flags, *extra, "-shared", "-fPIC", *sources, "-lm", "-o", str(lib)],
+                   check=True, timeout=300)
     os.environ["MCSM_KERNEL_LIBRARY"] = str(lib)
     return f"mcsm: from {ROOT}, CPU kernel built here ({' '.join(extra) or 'baseline'})"
 
