@@ -17,18 +17,24 @@ Sections, each guarded (one that fails is reported and the others still run):
    sizes M = 400 and 4,000 at N = 1000: per-frame codes and every value (as 64-bit
    patterns) of the GPU's frame pass against the CPU kernel's;
 3. replays: each recording of ``recordings/`` rebuilt on the device: identical digests;
-4. timings (state resident on the device, median of ``--repeats``, CUDA events): the frame
+4. tune (``benchmarks/gpu_tune.py``): the frame pass's three launches timed one by one at
+   ``--tune-frames`` (100,000) for each block size and samples per thread of the apply step,
+   every shape's output compared bit for bit; ``--keep-tuned`` keeps the fastest shapes for
+   the sections that follow;
+5. timings (state resident on the device, median of ``--repeats``, CUDA events): the frame
    pass of a loop closure (three launches, inputs already on the device), the whole
    ``StochasticMap.update`` of a loop closure (wall clock: the O(N) analysis on the CPU, two
    edges down, the weights up, the pass, the check), and the CPU kernel on one thread where
    ``--cpu-max-frames`` allows; the bandwidth counts 3 x 7 N M x 8 bytes (the sums read the
    component, the apply step reads and writes it);
-5. serve (``benchmarks/gpu_serve.py``): ``mcsm serve --device cuda`` as a subprocess, a map of
+6. serve (``benchmarks/gpu_serve.py``): ``mcsm serve --device cuda`` as a subprocess, a map of
    ``--serve-frames`` (100,000) frames built over Zenoh by acknowledged imports and joins,
    then acknowledged loop closures per second from ``MapClient``s (the issue's >= 200/s
    target), within ``--serve-budget-s``;
-6. datasets, if time is left: Victoria Park and sphere2500 streamed into a CPU map and a GPU
-   map with the same samples: the same digest after every file (or after the prefix that fit).
+7. datasets (``benchmarks/gpu_datasets.py``), if time is left: Victoria Park and sphere2500
+   streamed into a CPU map and a device map with the same samples, four processes at once:
+   the same digest every ``--dataset-every`` updates and at the end of each file (or as far
+   as each got).
 
 Every section is saved as soon as it ends, in this order: the bits first, then the timings.
 
@@ -56,7 +62,7 @@ from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 #: in the order they run (and are saved): the bits first, then the timings
-SECTIONS = ("environment", "bits", "replays", "timings", "serve", "datasets")
+SECTIONS = ("environment", "bits", "replays", "tune", "timings", "serve", "datasets")
 
 
 def _source_package() -> Path:
@@ -344,104 +350,6 @@ def _time_one(rep: Report, be: Any, base: Any, m_frames: int, n: int, repeats: i
     return row
 
 
-class Tee:
-    """Builds the CPU map whose every update and removal also goes to the device map."""
-
-    @staticmethod
-    def make(n: int, gpu: Any, deadline: float, clock: dict[str, Any]) -> Any:
-        from mcsm import StochasticMap
-        from mcsm.errors import McsmError
-
-        class TeeMap(StochasticMap):
-            def update(self, a: str, b: str, samples: Any, *, trusted: bool = False) -> Any:
-                if time.perf_counter() > deadline:
-                    raise TimeoutError
-                t0 = time.perf_counter()
-                try:
-                    r1: Any = super().update(a, b, samples, trusted=trusted)
-                except McsmError as exc:
-                    r1 = exc
-                t1 = time.perf_counter()
-                try:
-                    r2: Any = gpu.update(a, b, samples, trusted=trusted)
-                except McsmError as exc:
-                    r2 = exc
-                clock["cpu"] += t1 - t0
-                clock["gpu"] += time.perf_counter() - t1
-                clock["n"] += 1
-                if type(r1) is not type(r2) and not clock["mismatch"]:
-                    clock["mismatch"] = f"update {clock['n']}: {r1!r} vs {r2!r}"
-                if isinstance(r1, McsmError):
-                    raise r1
-                return r1
-
-            def remove(self, frame: str) -> Any:
-                gpu.remove(frame)
-                return super().remove(frame)
-
-        return TeeMap(n)
-
-
-def _feed(name: str, path: Any, cpu: Any, n: int, max_constraints: int | None) -> None:
-    import numpy as np
-
-    rng = np.random.default_rng(20261206)
-    if name.startswith("sphere"):
-        from mcsm_client.sampling import sample_pose
-
-        from experiments.pose_graph import read_toro3d
-
-        g = read_toro3d(Path(path))
-        todo = list(zip(g.edges, g.measurements, g.covariances, strict=True))
-        for (i, j), z, cov in todo[:max_constraints]:
-            cpu.update(f"x{i}", f"x{j}", sample_pose(z, cov, n_samples=n, rng=rng,
-                                                     translation_frame="body"))
-        return
-    from mcsm_client.datasets import read_dataset
-    from mcsm_client.players import play
-
-    play(read_dataset(path), cpu, rng=rng, n_samples=n, max_constraints=max_constraints)
-
-
-def datasets(rep: Report, be: Any, data: Path | None, n: int, deadline: float,
-             max_constraints: int | None) -> None:
-    from mcsm import StochasticMap
-    from mcsm_client.datasets import resolve_dataset_path
-
-    rep.say(f"\n## datasets: the same samples into a CPU map and a device map (N = {n})")
-    out = {}
-    for name in ("victoria_park.txt", "sphere2500.txt"):
-        try:
-            path = data / name if data is not None else resolve_dataset_path(f"gtsam:{name}")
-        except Exception as exc:
-            rep.say(f"{name}: no data ({exc}; benchmarks/results/README: --data)")
-            continue
-        if not Path(path).exists():
-            rep.say(f"{name}: not found at {path} (benchmarks/results/README: --data)")
-            continue
-        if time.perf_counter() > deadline - 20:
-            rep.say(f"{name}: skipped, out of time")
-            continue
-        gpu = StochasticMap(n, device=be)
-        clock: dict[str, Any] = {"cpu": 0.0, "gpu": 0.0, "n": 0, "mismatch": ""}
-        cpu = Tee.make(n, gpu, deadline, clock)
-        stopped = ""
-        try:
-            _feed(name, path, cpu, n, max_constraints)
-        except TimeoutError:
-            stopped = f" (stopped by the time limit after {clock['n']} updates)"
-        same = cpu.state_digest() == gpu.state_digest() and not clock["mismatch"]
-        out[name] = {"updates": clock["n"], "cpu_s": clock["cpu"], "gpu_s": clock["gpu"],
-                     "same_digest": same, "mismatch": clock["mismatch"], "stopped": stopped,
-                     "frames": len(cpu.frames()), "digest": gpu.state_digest()}
-        rep.say(f"{'same digest' if same else 'DIFFERENT'}  {name}: {clock['n']} updates"
-                f"{stopped}, {len(cpu.frames())} frames; CPU map {clock['cpu']:.1f} s, "
-                f"device map {clock['gpu']:.1f} s {clock['mismatch']}")
-        if not same:
-            rep.failed.append(f"dataset {name}")
-    rep.data["datasets"] = out
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, default=None, help="write gpu_check.txt/.json here")
@@ -471,7 +379,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--serve-budget-s", type=float, default=120.0,
                     help="the serve section's own time limit (default 120)")
     ap.add_argument("--dataset-samples", type=int, default=100)
+    ap.add_argument("--dataset-every", type=int, default=500,
+                    help="compare the datasets' digests every this many updates (default 500)")
     ap.add_argument("--max-constraints", type=int, default=None)
+    ap.add_argument("--tune-frames", type=int, default=100_000,
+                    help="M of the tuning section (N = 1000; default 100000)")
+    ap.add_argument("--tune-blocks", default="128,256,512,1024",
+                    help="block sizes the tuning section tries")
+    ap.add_argument("--tune-spt", default="2,4,8,16,32",
+                    help="samples per thread of the apply step the tuning section tries")
+    ap.add_argument("--keep-tuned", action="store_true",
+                    help="the fastest launch shapes stay set for the sections that follow")
     ap.add_argument("--skip", nargs="*", default=[],
                     choices=list(SECTIONS))
     args = ap.parse_args(argv)
@@ -522,6 +440,14 @@ def main(argv: list[str] | None = None) -> int:
                 bits(rep, be)
             elif name == "replays":
                 replays(rep, be)
+            elif name == "tune":
+                from gpu_tune import tune_section
+
+                blocks = [int(v) for v in args.tune_blocks.split(",") if v]
+                spts = [int(v) for v in args.tune_spt.split(",") if v]
+                tune_section(rep, be, _base(1000, 200, 20261205 + 1000),
+                             max(8, args.tune_frames), args.repeats, blocks, spts,
+                             args.keep_tuned, median)
             elif name == "timings":
                 timings(rep, be, sizes, args.repeats, args.cpu_max_frames,
                         args.bits_max_frames, copy_bw, deadline)
@@ -533,8 +459,10 @@ def main(argv: list[str] | None = None) -> int:
                               min(deadline, time.perf_counter() + args.serve_budget_s),
                               max(2, args.serve_block_frames))
             else:
-                datasets(rep, be, args.data, args.dataset_samples, deadline,
-                         args.max_constraints)
+                from gpu_datasets import datasets_section
+
+                datasets_section(rep, args.emulate, args.data, args.dataset_samples, deadline,
+                                 args.max_constraints, max(1, args.dataset_every))
         except Exception as exc:
             rep.say(f"\n## {name}: FAILED to run: {type(exc).__name__}: {exc}")
             rep.data.setdefault("errors", []).append(traceback.format_exc())

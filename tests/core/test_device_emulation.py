@@ -15,6 +15,7 @@ from __future__ import annotations
 import ast
 import json
 import platform
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -203,8 +204,17 @@ def test_gpu_check_rehearses_every_section_on_the_emulated_device(tmp_path: Path
     rc, out = _gpu_check(tmp_path, "--emulate", "--sizes", "40x50,24x1003", "--repeats", "2",
                          "--max-constraints", "150", "--dataset-samples", "16",
                          "--serve-frames", "40", "--serve-samples", "16",
-                         "--serve-block-frames", "8", "--serve-seconds", "0.5")
+                         "--serve-block-frames", "8", "--serve-seconds", "0.5",
+                         "--tune-frames", "24", "--tune-blocks", "32,256", "--tune-spt", "4,8",
+                         "--keep-tuned", "--dataset-every", "50")
     assert rc == 0, out[-3000:]
+    # the tuning section: 4 launch shapes, each the default shape's bits, the default the
+    # CPU kernel's; the fastest kept for the timing table
+    assert out.count("| identical |") == 4 + 2, out[-3000:]  # and the 2 timing rows
+    assert "default shapes vs the CPU kernel at M = 24: identical" in out
+    assert "kept for the sections that follow: BLOCKS = {" in out
+    # the datasets: four workers, digests compared after 50, 100, 150 updates and at the end
+    assert out.count("3 checkpoints compared") == 2, out[-3000:]
     assert "FAILED" not in out and "DIFFERENT" not in out and "DIVERGED" not in out
     assert out.count("identical") >= 20 + len(RECORDINGS) + 2
     assert "| 40 | 50 |" in out and "| 24 | 1003 |" in out
@@ -216,13 +226,35 @@ def test_gpu_check_rehearses_every_section_on_the_emulated_device(tmp_path: Path
     report = (tmp_path / "gpu_check.txt").read_text()
     sections = [line for line in report.splitlines() if line.startswith("## ")]
     assert [line.split(":")[0] for line in sections] == \
-        ["## bits", "## the shipped recordings replayed on the device", "## timings",
+        ["## bits", "## the shipped recordings replayed on the device", "## tuning",
+         "## timings",
          "## serve", "## datasets"], sections  # the bits first, then the timings
     data = json.loads((tmp_path / "gpu_check.json").read_text())
     rates = data["serve"]["rates"]
     assert [r["clients"] for r in rates] == [1, 4]
     assert all(r["acked"] >= 1 and set(r["kinds"]) == {"loop_closure"} for r in rates)
     assert data["serve"]["server_exit"] == 0
+
+
+def test_gpu_check_dataset_comparison_finds_a_different_checkpoint() -> None:
+    """The dataset section's verdict: the same only where every common checkpoint and both
+    ends agree; a differing checkpoint, a differing end or nothing in common is not."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        from gpu_datasets import compare
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+
+    def ck(k: int, d: str, final: bool = False) -> dict[str, object]:
+        return {"k": k, "digest": d, "outcomes": "o", "seconds": 1.0, "final": final}
+
+    cpu = [ck(50, "a"), ck(100, "b"), ck(120, "c", True)]
+    assert compare(cpu, [ck(50, "a"), ck(100, "b"), ck(120, "c", True)])["same"]
+    assert compare(cpu, [ck(50, "a"), {"k": 70, "stopped": True}])["same"]  # a prefix
+    res = compare(cpu, [ck(50, "a"), ck(100, "X"), ck(120, "c", True)])
+    assert not res["same"] and res["checkpoints_differ"] == [100]
+    assert not compare(cpu, [ck(50, "a"), ck(100, "b"), ck(120, "Y", True)])["same"]
+    assert not compare(cpu, [{"k": 10, "stopped": True}])["same"]  # nothing compared
 
 
 def test_gpu_check_without_a_gpu_says_so_and_exits_0(tmp_path: Path) -> None:

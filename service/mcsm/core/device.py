@@ -47,6 +47,9 @@ HEADER = HERE / "kernel_common.h"
 #: standard is NVRTC's default (C++17): the source needs C++11 templates only.
 NVRTC_OPTIONS = ("--fmad=false", "--prec-div=true", "--prec-sqrt=true", "--ftz=false")
 BLOCK = 256
+#: per-kernel block sizes where they differ from :data:`BLOCK` (launch shapes never change a
+#: value: no thread reads another's result)
+BLOCKS: dict[str, int] = {}
 #: samples per thread of the apply step (each thread loads its frame's gain once for them)
 SAMPLES_PER_THREAD = 8
 #: device memory left free for the CUDA context and the library's own temporaries
@@ -147,7 +150,8 @@ class CudaBackend(Backend):
         fn = self._functions.get(kernel_name)
         if fn is None:
             fn = self._functions[kernel_name] = self._module.get_function(kernel_name)
-        fn(((threads + BLOCK - 1) // BLOCK,), (BLOCK,), tuple(args))
+        block = BLOCKS.get(kernel_name, BLOCK)
+        fn(((threads + block - 1) // block,), (block,), tuple(args))
 
     def free_bytes(self) -> int:
         free, _total = self._cupy.cuda.runtime.memGetInfo()

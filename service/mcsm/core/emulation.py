@@ -27,7 +27,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from mcsm.core.device import BLOCK, HEADER, SOURCE, Backend
+from mcsm.core import device
+from mcsm.core.device import HEADER, SOURCE, Backend
 
 EMULATION = SOURCE.with_name("_kernel_emulation.cpp")
 #: setup.py's KERNEL_FLAGS for C++ (``-std=gnu11`` and ``-fexcess-precision=standard`` are C
@@ -100,8 +101,9 @@ class EmulatedBackend(Backend):
                 raise TypeError(f"{kernel_name}: argument {j} of type {type(a).__name__}")
             holders.append(h)
             ptrs[j] = ctypes.cast(ctypes.pointer(h), ctypes.c_void_p)
-        blocks = (threads + BLOCK - 1) // BLOCK
-        if self._lib.emu_launch(kernel_name.encode(), blocks, BLOCK, ptrs) != 0:
+        block = device.BLOCKS.get(kernel_name, device.BLOCK)
+        blocks = (threads + block - 1) // block
+        if self._lib.emu_launch(kernel_name.encode(), blocks, block, ptrs) != 0:
             raise ValueError(f"no kernel {kernel_name!r} in the device source")
         self.launches[kernel_name] = self.launches.get(kernel_name, 0) + 1
 
