@@ -384,10 +384,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-constraints", type=int, default=None)
     ap.add_argument("--tune-frames", type=int, default=100_000,
                     help="M of the tuning section (N = 1000; default 100000)")
-    ap.add_argument("--tune-blocks", default="128,256,512,1024",
-                    help="block sizes the tuning section tries")
-    ap.add_argument("--tune-spt", default="2,4,8,16,32",
+    ap.add_argument("--tune-blocks", default="128,256",
+                    help="block sizes the tuning section tries (a block larger than a kernel "
+                         "can launch is cut to its limit)")
+    ap.add_argument("--tune-spt", default="8,16,32",
                     help="samples per thread of the apply step the tuning section tries")
+    ap.add_argument("--tune-caps", default="0,128,96",
+                    help="register caps (NVRTC --maxrregcount; 0: none) the tuning section "
+                         "recompiles the kernels with")
     ap.add_argument("--keep-tuned", action="store_true",
                     help="the fastest launch shapes stay set for the sections that follow")
     ap.add_argument("--skip", nargs="*", default=[],
@@ -447,7 +451,8 @@ def main(argv: list[str] | None = None) -> int:
                 spts = [int(v) for v in args.tune_spt.split(",") if v]
                 tune_section(rep, be, _base(1000, 200, 20261205 + 1000),
                              max(8, args.tune_frames), args.repeats, blocks, spts,
-                             args.keep_tuned, median)
+                             args.keep_tuned, median,
+                             tuple(int(v) for v in args.tune_caps.split(",") if v))
             elif name == "timings":
                 timings(rep, be, sizes, args.repeats, args.cpu_max_frames,
                         args.bits_max_frames, copy_bw, deadline)

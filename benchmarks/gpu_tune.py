@@ -39,8 +39,35 @@ def _timed(be: Any, fns: list[Any], repeats: int, warmup: int = 2) -> list[list[
     return out
 
 
+def _variant(be: Any, cap: int, emulate: bool) -> Any:
+    """The backend with the device source recompiled under a register cap (0: ``be``)."""
+    if cap == 0 or emulate:
+        return be
+    from mcsm.core.device import CudaBackend
+
+    return CudaBackend(0, (f"--maxrregcount={cap}",))
+
+
+def _registers(rep: Any) -> None:
+    """Registers and stack per thread of the frame pass's kernels, from ptxas through NVRTC
+    (no GPU needed): registers decide how many warps an SM holds."""
+    try:
+        from mcsm.core.device import NVRTC_OPTIONS
+        from mcsm.core.emulation import ptxas_info
+
+        info = ptxas_info(NVRTC_OPTIONS)
+    except Exception as exc:
+        rep.say(f"registers: not known ({type(exc).__name__}: {exc})")
+        return
+    rep.say("registers per thread (sm_90, ptxas): " + ", ".join(
+        f"{k} {v.get('registers')}" + (f" (+{v['stack']} B stack)" if v.get("stack") else "")
+        for k, v in info.items() if k.startswith("mk_d_joint")))
+    rep.data["registers"] = info
+
+
 def tune_section(rep: Any, be: Any, base: Any, m_frames: int, repeats: int,
-                 blocks: list[int], spts: list[int], keep: bool, median: Any) -> None:
+                 blocks: list[int], spts: list[int], keep: bool, median: Any,
+                 caps: tuple[int, ...] = (0,)) -> None:
     import numpy as np
     from mcsm.core import device, kernel
     from mcsm.core.device import DeviceComponent, first_failure
@@ -60,57 +87,77 @@ def tune_section(rep: Any, be: Any, base: Any, m_frames: int, repeats: int,
     inputs = dc.pass_inputs(args, arrays)
     out = be.empty(buf.shape)
     a, part, rc, flags = inputs["args"], inputs["part"], inputs["rc"], inputs["flags"]
-    ntask, nacc, cap = inputs["ntask"], inputs["nacc"], dc.capacity
+    ntask, nacc, capacity = inputs["ntask"], inputs["nacc"], dc.capacity
     i64, i32 = np.int64, np.int32
     default = (device.BLOCK, dict(device.BLOCKS), device.SAMPLES_PER_THREAD)
+    _registers(rep)
+
+    kb = [be]  # the backend whose compiled kernels the timed launches use
 
     def sums() -> None:
         rc[...] = 0
         flags[...] = 0
-        be.launch("mk_d_joint_sums", 4 * ntask * m_frames,
-                  (a, dc._buf, i64(cap), i64(m_frames), i32(ntask), i32(nacc), part))
+        kb[0].launch("mk_d_joint_sums", 4 * ntask * m_frames,
+                  (a, dc._buf, i64(capacity), i64(m_frames), i32(ntask), i32(nacc), part))
 
     def gain() -> None:
-        be.launch("mk_d_joint_gain", m_frames, (a, dc._buf, i64(cap), i64(m_frames),
+        kb[0].launch("mk_d_joint_gain", m_frames, (a, dc._buf, i64(capacity), i64(m_frames),
                                                 i32(nacc), part, inputs["cxy"],
                                                 inputs["nmean"], rc))
 
     def apply(spt: int) -> Any:
-        return lambda: be.launch(
+        return lambda: kb[0].launch(
             "mk_d_joint_apply", m_frames * ((n + spt - 1) // spt),
-            (a, dc._buf, i64(cap), out, i64(m_frames), dc._point, inputs["cxy"],
+            (a, dc._buf, i64(capacity), out, i64(m_frames), dc._point, inputs["cxy"],
              inputs["nmean"], rc, i32(spt), flags))
 
     dc.launch_pass(inputs, out)  # the default shapes: the reference
     be.synchronize()
     ref, rc_ref, fl_ref = out.copy(), rc.copy(), flags.copy()
     rows = []
-    rep.say("| block | samples per thread (apply) | sums ms | gain ms | apply ms | total ms "
-            "| bits vs default shapes |")
-    rep.say("|---|---|---|---|---|---|---|")
+    rep.say("| register cap | block | samples per thread (apply) | sums ms | gain ms | "
+            "apply ms | total ms | bits vs default shapes |")
+    rep.say("|---|---|---|---|---|---|---|---|")
+    emulate = not be.name.startswith("cuda")
+    if emulate:  # one compiler there, the host's: register caps mean nothing
+        caps = (0,)
     try:
-        for block in blocks:
-            device.BLOCK = block
-            device.BLOCKS.clear()
-            for spt in spts:
-                out[...] = 0
-                t = _timed(be, [sums, gain, apply(spt)], repeats)
-                be.synchronize()
-                same = bool(xp.array_equal(out.view(xp.uint64), ref.view(xp.uint64))
-                            and xp.array_equal(rc, rc_ref) and xp.array_equal(flags, fl_ref))
-                if not same:
-                    rep.failed.append(f"tuning: block {block}, spt {spt} changed the bits")
-                row = {"block": block, "spt": spt, "sums_ms": median(t[0]),
-                       "gain_ms": median(t[1]), "apply_ms": median(t[2]), "same": same,
-                       "raw": t}
-                rows.append(row)
-                rep.say(f"| {block} | {spt} | {row['sums_ms']:.3f} | {row['gain_ms']:.3f} | "
-                        f"{row['apply_ms']:.3f} | "
-                        f"{row['sums_ms'] + row['gain_ms'] + row['apply_ms']:.3f} | "
-                        f"{'identical' if same else 'DIFFERENT'} |")
+        for rcap in caps:
+            try:
+                kb[0] = _variant(be, rcap, emulate)
+            except Exception as exc:
+                rep.say(f"| {rcap} | - | - | could not compile: {exc} | | | | |")
+                continue
+            for block in blocks:
+                device.BLOCK = block
+                device.BLOCKS.clear()
+                for spt in spts:
+                    out[...] = 0
+                    try:
+                        t = _timed(be, [sums, gain, apply(spt)], repeats)
+                        be.synchronize()
+                    except Exception as exc:  # a shape this kernel cannot launch
+                        rep.say(f"| {rcap or '-'} | {block} | {spt} | cannot launch: "
+                                f"{type(exc).__name__}: {str(exc)[:80]} | | | | |")
+                        continue
+                    same = bool(xp.array_equal(out.view(xp.uint64), ref.view(xp.uint64))
+                                and xp.array_equal(rc, rc_ref)
+                                and xp.array_equal(flags, fl_ref))
+                    if not same:
+                        rep.failed.append(f"tuning: cap {rcap} block {block}, spt {spt} "
+                                          "changed the bits")
+                    row = {"cap": rcap, "block": block, "spt": spt, "sums_ms": median(t[0]),
+                           "gain_ms": median(t[1]), "apply_ms": median(t[2]), "same": same,
+                           "raw": t}
+                    rows.append(row)
+                    rep.say(f"| {rcap or '-'} | {block} | {spt} | {row['sums_ms']:.3f} | "
+                            f"{row['gain_ms']:.3f} | {row['apply_ms']:.3f} | "
+                            f"{row['sums_ms'] + row['gain_ms'] + row['apply_ms']:.3f} | "
+                            f"{'identical' if same else 'DIFFERENT'} |")
     finally:
         device.BLOCK, device.BLOCKS, device.SAMPLES_PER_THREAD = \
             default[0], default[1], default[2]
+        kb[0] = be
     # the default shapes' output against the CPU kernel, every value
     cpu_rows = np.ascontiguousarray(np.tile(base_rows, (reps, 1, 1))[:m_frames])
     cpu_out = np.empty_like(cpu_rows)
@@ -130,10 +177,14 @@ def tune_section(rep: Any, be: Any, base: Any, m_frames: int, repeats: int,
     if not cpu_same:
         rep.failed.append(f"tuning: the device pass differs from the CPU kernel at M={m_frames}")
     del cpu_rows, cpu_out, dev_out
-    best_sums = min(rows, key=lambda r: r["sums_ms"])
-    best_gain = min(rows, key=lambda r: r["gain_ms"])
-    best_apply = min(rows, key=lambda r: r["apply_ms"])
-    d = next((r for r in rows if r["block"] == default[0] and r["spt"] == default[2]), None)
+    uncapped = [r for r in rows if r["cap"] == 0]
+    if not uncapped:
+        return
+    best_sums = min(uncapped, key=lambda r: r["sums_ms"])
+    best_gain = min(uncapped, key=lambda r: r["gain_ms"])
+    best_apply = min(uncapped, key=lambda r: r["apply_ms"])
+    spt_d = device.apply_samples_per_thread(m_frames, n)
+    d = next((r for r in uncapped if r["block"] == default[0] and r["spt"] == spt_d), None)
     total = best_sums["sums_ms"] + best_gain["gain_ms"] + best_apply["apply_ms"]
     rep.say(f"fastest: sums block {best_sums['block']}, gain block {best_gain['block']}, apply "
             f"block {best_apply['block']} x {best_apply['spt']} samples: {total:.3f} ms"
@@ -148,6 +199,6 @@ def tune_section(rep: Any, be: Any, base: Any, m_frames: int, repeats: int,
         device.BLOCKS.update({"mk_d_joint_sums": best_sums["block"],
                               "mk_d_joint_gain": best_gain["block"],
                               "mk_d_joint_apply": best_apply["block"]})
-        device.SAMPLES_PER_THREAD = best_apply["spt"]
+        device.SAMPLES_PER_THREAD = device.SAMPLES_PER_THREAD_LARGE = best_apply["spt"]
         rep.say(f"kept for the sections that follow: BLOCKS = {device.BLOCKS}, "
-                f"SAMPLES_PER_THREAD = {device.SAMPLES_PER_THREAD}")
+                f"{best_apply['spt']} samples per thread at every size")

@@ -295,3 +295,14 @@ def test_a_retraction_rebuilds_the_map_on_its_device(backend: emulation.Emulated
         assert st.digest() != before
     assert states[1].map.device == "emulated"
     assert states[1].digest() == states[0].digest()
+
+
+def test_the_apply_step_takes_more_samples_per_thread_only_on_large_components() -> None:
+    """32 samples a thread where that still leaves 2**21 threads (measured faster at
+    M = 100,000, N = 1000), 8 elsewhere (the shape smaller maps were measured with)."""
+    from mcsm.core import device
+
+    assert device.apply_samples_per_thread(100_000, 1000) == 32
+    assert device.apply_samples_per_thread(10_000, 10_000) == 32
+    assert device.apply_samples_per_thread(40_000, 1000) == 8
+    assert device.apply_samples_per_thread(400, 1000) == 8

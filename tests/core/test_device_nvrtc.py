@@ -38,3 +38,15 @@ def test_nvrtc_compiles_the_device_kernel_without_fused_multiply_adds(nvrtc: str
 def test_with_contraction_allowed_the_same_source_has_them(nvrtc: str) -> None:
     opts = tuple("--fmad=true" if o == "--fmad=false" else o for o in NVRTC_OPTIONS)
     assert len(FUSED.findall(emulation.compile_ptx(opts, library=nvrtc))) > 100
+
+
+def test_ptxas_reports_what_each_kernel_needs_and_none_spills(nvrtc: str) -> None:
+    """Registers per thread decide how many warps an SM holds (docs/kernel.md, "Measured on
+    a GPU"); with the shipped options no kernel spills to local memory. Capped at 64
+    registers the apply step does, so the check can fail."""
+    info = emulation.ptxas_info(NVRTC_OPTIONS, library=nvrtc)
+    assert set(KERNELS) <= set(info)
+    assert all(info[k]["registers"] > 0 and info[k]["spill_stores"] == 0 for k in KERNELS)
+    capped = emulation.ptxas_info((*NVRTC_OPTIONS, "--maxrregcount=64"), library=nvrtc)
+    assert capped["mk_d_joint_apply"]["registers"] <= 64
+    assert capped["mk_d_joint_apply"]["spill_stores"] > 0

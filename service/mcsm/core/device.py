@@ -46,12 +46,20 @@ HEADER = HERE / "kernel_common.h"
 #: division and square root and no flush-to-zero (the defaults, stated). The language
 #: standard is NVRTC's default (C++17): the source needs C++11 templates only.
 NVRTC_OPTIONS = ("--fmad=false", "--prec-div=true", "--prec-sqrt=true", "--ftz=false")
-BLOCK = 256
-#: per-kernel block sizes where they differ from :data:`BLOCK` (launch shapes never change a
-#: value: no thread reads another's result)
+#: threads per block. 128 was the fastest of 128 and 256 for each of the frame pass's three
+#: launches on an H100 (benchmarks/results/gpu_check.txt, "tuning"); a 512-thread block of the
+#: apply step cannot launch there (172 registers a thread). Launch shapes never change a value:
+#: no thread reads another's result.
+BLOCK = 128
+#: per-kernel block sizes where they differ from :data:`BLOCK`
 BLOCKS: dict[str, int] = {}
-#: samples per thread of the apply step (each thread loads its frame's gain once for them)
+#: samples per thread of the apply step (each thread loads its frame's gain once for them):
+#: SAMPLES_PER_THREAD, or SAMPLES_PER_THREAD_LARGE where that still leaves at least
+#: LARGE_THREADS threads. On the H100, M = 100,000 and N = 1000: 32 samples 5.4 ms, 8 samples
+#: 6.3 ms; smaller maps were measured with 8 only.
 SAMPLES_PER_THREAD = 8
+SAMPLES_PER_THREAD_LARGE = 32
+LARGE_THREADS = 1 << 21
 #: device memory left free for the CUDA context and the library's own temporaries
 HEADROOM_BYTES = 256 << 20
 _I64, _I32 = np.int64, np.int32
@@ -64,6 +72,12 @@ def device_source() -> str:
     return src.replace('#include "kernel_common.h"', HEADER.read_text(), 1)
 
 
+def apply_samples_per_thread(m: int, n: int) -> int:
+    """Samples per thread of the apply step for ``m`` frames of ``n`` samples."""
+    big = SAMPLES_PER_THREAD_LARGE
+    return big if m * -(-n // big) >= LARGE_THREADS else SAMPLES_PER_THREAD
+
+
 class Backend:
     """An accelerator as the device storage sees it: an array module ``xp`` with numpy's
     interface, a kernel launcher, transfers and free memory."""
@@ -73,7 +87,8 @@ class Backend:
     xp: Any = None
 
     def launch(self, kernel_name: str, threads: int, args: Sequence[object]) -> None:
-        """Run ``kernel_name`` over ``threads`` threads (1-D blocks of :data:`BLOCK`) with
+        """Run ``kernel_name`` over ``threads`` threads (1-D blocks of :data:`BLOCK` or
+        ``BLOCKS[kernel_name]``, at most what the compiled kernel can launch) with
         ``args``: device arrays, ``np.int64`` (``long long``), ``np.int32`` (``int``)."""
         raise NotImplementedError
 
@@ -118,7 +133,9 @@ class CudaBackend(Backend):
     """CuPy on CUDA device ``device_id``; the kernels compiled by NVRTC once per process
     (and cached on disk by CuPy)."""
 
-    def __init__(self, device_id: int = 0) -> None:
+    def __init__(self, device_id: int = 0, options: Sequence[str] = ()) -> None:
+        """``options``: NVRTC options added to :data:`NVRTC_OPTIONS` (a register cap such as
+        ``--maxrregcount=96`` for the benchmarks; none may change the arithmetic)."""
         try:
             import cupy
         except ImportError as exc:
@@ -132,7 +149,8 @@ class CudaBackend(Backend):
             self._device = cupy.cuda.Device(device_id)
             self._device.use()
             props = cupy.cuda.runtime.getDeviceProperties(device_id)
-            self._module = cupy.RawModule(code=device_source(), options=NVRTC_OPTIONS)
+            self._module = cupy.RawModule(code=device_source(),
+                                          options=(*NVRTC_OPTIONS, *options))
             self._module.get_function("mk_d_joint_apply")  # compile now, fail here
         except Exception as exc:  # CUDARuntimeError, CompileException, no driver, ...
             raise InvalidOperation(f"device='cuda': no usable CUDA GPU: "
@@ -143,6 +161,7 @@ class CudaBackend(Backend):
         name = props.get("name", b"")
         self.description = name.decode() if isinstance(name, bytes) else str(name)
         self._functions: dict[str, Any] = {}
+        self._max_block: dict[str, int] = {}
 
     def launch(self, kernel_name: str, threads: int, args: Sequence[object]) -> None:
         if threads <= 0:
@@ -150,7 +169,11 @@ class CudaBackend(Backend):
         fn = self._functions.get(kernel_name)
         if fn is None:
             fn = self._functions[kernel_name] = self._module.get_function(kernel_name)
-        block = BLOCKS.get(kernel_name, BLOCK)
+            try:  # the most threads a block of it can have (its registers decide)
+                self._max_block[kernel_name] = int(fn.max_threads_per_block)
+            except Exception:  # an older CuPy: the hardware's limit
+                self._max_block[kernel_name] = 1024
+        block = min(BLOCKS.get(kernel_name, BLOCK), self._max_block[kernel_name])
         fn(((threads + block - 1) // block,), (block,), tuple(args))
 
     def free_bytes(self) -> int:
@@ -459,7 +482,7 @@ class DeviceComponent:
         gain; per-sample apply), everything already on the device; ``(rc, flags)``."""
         be, n, m, cap = self.backend, self.n_samples, self._m, self.capacity
         a, part, rc, flags = inputs["args"], inputs["part"], inputs["rc"], inputs["flags"]
-        ntask, nacc, spt = inputs["ntask"], inputs["nacc"], SAMPLES_PER_THREAD
+        ntask, nacc, spt = inputs["ntask"], inputs["nacc"], apply_samples_per_thread(m, n)
         rc[...] = 0
         flags[...] = 0
         be.launch("mk_d_joint_sums", 4 * ntask * m, (a, self._buf, _I64(cap), _I64(m),

@@ -144,11 +144,43 @@ def nvrtc_library() -> str | None:
     return ctypes.util.find_library("nvrtc")
 
 
+def ptxas_info(options: Sequence[str], arch: str = "sm_90",
+               library: str | None = None) -> dict[str, dict[str, int]]:
+    """What the device kernels need per thread once NVRTC has compiled them for ``arch`` (no
+    GPU needed): ``{kernel: {"registers", "stack", "spill_stores", "spill_loads"}}``, read
+    from ptxas's verbose log. Registers decide how many threads an SM can hold."""
+    import re
+
+    log = _nvrtc(options, arch, library, ("--ptxas-options=-v",))[1]
+    out: dict[str, dict[str, int]] = {}
+    name = ""
+    for line in log.splitlines():
+        m = re.search(r"Compiling entry function '(\w+)'", line)
+        if m:
+            name = m.group(1)
+            out[name] = {}
+        m = re.search(r"(\d+) bytes stack frame, (\d+) bytes spill stores, (\d+) bytes spill "
+                      r"loads", line)
+        if m and name:
+            out[name].update(stack=int(m.group(1)), spill_stores=int(m.group(2)),
+                             spill_loads=int(m.group(3)))
+        m = re.search(r"Used (\d+) registers", line)
+        if m and name:
+            out[name]["registers"] = int(m.group(1))
+    return out
+
+
 def compile_ptx(options: Sequence[str], arch: str = "compute_90",
                 library: str | None = None) -> str:
     """The device kernel's PTX, compiled by NVRTC through ctypes (no GPU needed) with
     ``options`` (e.g. :data:`mcsm.core.device.NVRTC_OPTIONS`). Raises RuntimeError with
     NVRTC's log when it does not compile, or when no NVRTC library is found."""
+    return _nvrtc(options, arch, library)[0]
+
+
+def _nvrtc(options: Sequence[str], arch: str, library: str | None,
+           extra: Sequence[str] = ()) -> tuple[str, str]:
+    """NVRTC run on the device source: (its PTX, its log)."""
     from mcsm.core.device import device_source
 
     path = library or nvrtc_library()
@@ -160,19 +192,19 @@ def compile_ptx(options: Sequence[str], arch: str = "compute_90",
     if lib.nvrtcCreateProgram(ctypes.byref(prog), src, b"_kernel_cuda.cu", 0, None, None):
         raise RuntimeError("nvrtcCreateProgram failed")
     try:
-        opts = [f"--gpu-architecture={arch}", *options]
+        opts = [f"--gpu-architecture={arch}", *options, *extra]
         arr = (ctypes.c_char_p * len(opts))(*[o.encode() for o in opts])
         rc = lib.nvrtcCompileProgram(prog, len(opts), arr)
         size = ctypes.c_size_t()
         lib.nvrtcGetProgramLogSize(prog, ctypes.byref(size))
         log = ctypes.create_string_buffer(size.value)
         lib.nvrtcGetProgramLog(prog, log)
+        text = log.value.decode(errors="replace")
         if rc != 0:
-            raise RuntimeError(f"NVRTC could not compile the device kernel ({rc}):\n"
-                               f"{log.value.decode(errors='replace')}")
+            raise RuntimeError(f"NVRTC could not compile the device kernel ({rc}):\n{text}")
         lib.nvrtcGetPTXSize(prog, ctypes.byref(size))
         ptx = ctypes.create_string_buffer(size.value)
         lib.nvrtcGetPTX(prog, ptx)
-        return ptx.value.decode()
+        return ptx.value.decode(), text
     finally:
         lib.nvrtcDestroyProgram(ctypes.byref(prog))
