@@ -71,7 +71,8 @@ def kernel_builds(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     assert cc is not None, "a C compiler is needed to build mcsm's kernel"
     out = tmp_path_factory.mktemp("kernels")
     builds = {}
-    for name, march in (("baseline", "-march=x86-64"), ("native", "-march=native")):
+    for name, march in (("baseline", "-march=x86-64"), ("native", "-march=native"),
+                        ("plain-factor", "-DMR_PLAIN_FACTOR")):
         lib = out / f"kernel-{name}.so"
         subprocess.run([cc, *_kernel_flags(), march, "-shared", "-fPIC",
                         *(str(s) for s in SOURCES), "-o", str(lib)], check=True,
@@ -93,9 +94,12 @@ def test_same_digests_under_other_blas_and_simd(reference: dict[str, object],
     assert _run(CONFIGS[config], 2) == reference
 
 
-@pytest.mark.parametrize("build", ["baseline", "native"])
+@pytest.mark.parametrize("build", ["baseline", "native", "plain-factor"])
 def test_same_digests_with_the_kernel_built_for_other_cpus(
         reference: dict[str, object], kernel_builds: dict[str, Path], build: str) -> None:
+    """Also "plain-factor": the relinearisation's factorisation without its unrolled and
+    paired-lane paths for 6- and 3-dimensional blocks (``MR_PLAIN_FACTOR``), the order of
+    operations those paths must keep."""
     got = _run({"MCSM_KERNEL_LIBRARY": str(kernel_builds[build]),
                 "OPENBLAS_CORETYPE": "Sandybridge"}, 2)
     assert got == reference

@@ -11,6 +11,52 @@
 #define PIVOT_TOL 1e-10
 
 
+/* T (dw x D) -= Lw (dw x D) Lu^T (Lu: D x D), given lut = Lu transposed (k-major): the update
+ * loop of mr_factorise for D-dimensional blocks on both sides (6-dof poses, planar poses),
+ * its bounds known so that the compiler unrolls it and runs the b loop along lut's rows.
+ * Each element's sum is still 0.0 + the products k = 0, 1, ... in that order, the plain
+ * loop's order: the same bits. Only independent elements are computed side by side. */
+#define MR_OUTER(NAME, D)                                                                   \
+    static void NAME(const double *Lw, const double *lut, int dw, double *T) {              \
+        for (int a = 0; a < dw; a++) {                                                      \
+            double t[D];                                                                    \
+            for (int b = 0; b < D; b++) t[b] = 0.0;                                         \
+            for (int k = 0; k < D; k++) {                                                   \
+                double l = Lw[a * D + k];                                                   \
+                for (int b = 0; b < D; b++) t[b] += l * lut[k * D + b];                     \
+            }                                                                               \
+            for (int b = 0; b < D; b++) T[a * D + b] -= t[b];                               \
+        }                                                                                   \
+    }
+MR_OUTER(outer3, 3)
+
+/* The same for D = 6 in pairs of lanes (GCC / clang vector extensions: SSE2 on baseline
+ * x86-64, NEON on arm64): lane j of t0, t1, t2 is element 2 i + j's sum, added in the same
+ * order; a lane's multiply and add are IEEE operations on that lane alone (no contraction:
+ * -ffp-contract=off), so the bits are the scalar loop's. */
+typedef double mr_v2 __attribute__((vector_size(16)));
+
+static void outer6(const double *Lw, const double *lut, int dw, double *T) {
+    mr_v2 L[18];
+    memcpy(L, lut, sizeof L);
+    for (int a = 0; a < dw; a++) {
+        mr_v2 t0 = {0.0, 0.0}, t1 = {0.0, 0.0}, t2 = {0.0, 0.0};
+        for (int k = 0; k < 6; k++) {
+            double l = Lw[a * 6 + k];
+            mr_v2 lv = {l, l};
+            t0 += lv * L[k * 3];
+            t1 += lv * L[k * 3 + 1];
+            t2 += lv * L[k * 3 + 2];
+        }
+        mr_v2 r[3];
+        memcpy(r, T + a * 6, sizeof r);
+        r[0] -= t0;
+        r[1] -= t1;
+        r[2] -= t2;
+        memcpy(T + a * 6, r, sizeof r);
+    }
+}
+
 /* val = L of (H + lambda diag H); marks dimensions without information. */
 void mr_factorise(mr_state *S, double lambda, int *slot) {
     memcpy(S->val, S->hval, sizeof(double) * S->nval);
@@ -59,6 +105,15 @@ void mr_factorise(mr_state *S, double lambda, int *slot) {
         for (long qa = c0; qa < c1; qa++) {
             int u = S->crow[qa], du = S->dim[u];
             const double *Lu = S->val + S->boff[qa];
+#ifdef MR_PLAIN_FACTOR /* the plain loop alone: tests/core/test_portability.py builds it */
+            int fast = 0;
+#else
+            int fast = du == dp && (dp == 6 || dp == 3);
+#endif
+            double lut[36];
+            if (fast)
+                for (int b = 0; b < du; b++)
+                    for (int k = 0; k < dp; k++) lut[k * du + b] = Lu[b * dp + k];
             for (long q = S->cptr[u]; q < S->cptr[u + 1]; q++) slot[S->crow[q]] = (int)(q - S->cptr[u]);
             double *Du = S->val + S->doff[u];
             for (int a = 0; a < du; a++)
@@ -71,6 +126,11 @@ void mr_factorise(mr_state *S, double lambda, int *slot) {
                 int w = S->crow[qb], dw = S->dim[w];
                 const double *Lw = S->val + S->boff[qb];
                 double *T = S->val + S->boff[S->cptr[u] + slot[w]];
+                if (fast) {
+                    if (dp == 6) outer6(Lw, lut, dw, T);
+                    else outer3(Lw, lut, dw, T);
+                    continue;
+                }
                 for (int a = 0; a < dw; a++)
                     for (int b = 0; b < du; b++) {
                         double t = 0.0;
