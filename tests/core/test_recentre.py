@@ -198,6 +198,15 @@ def test_the_active_coordinates_follow_their_definition(planar: bool) -> None:
     i = np.arange(1, 12, dtype=np.int64)
     assert relin.active(buf, i, flags[i]) == reference(i)
     assert not relin.active(buf, i, flags[i])[0] & 0b10
+    buf[0, 1] = rng.normal(size=buf.shape[-1])  # only the root varies in y: not active
+    for perm in (np.arange(12), np.arange(12)[::-1], rng.permutation(12), np.array([0, 5])):
+        # one pass: the means of every frame asked, the masks of those other than the root
+        p = perm.astype(np.int64)
+        means, masks = relin.means_active(buf, p, flags[p])
+        assert means.tobytes() == relin.means(buf, p, flags[p]).tobytes()
+        rest = p[p != 0]
+        assert masks == relin.active(buf, rest, flags[rest]) == reference(rest), perm
+        assert not masks[0] & 0b10 or not np.any(flags[rest] == 0)  # (no pose: every bit)
 
 
 def test_the_recentring_kernel_gives_the_same_bits_copied_or_in_place() -> None:

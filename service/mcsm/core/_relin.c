@@ -29,7 +29,7 @@
 
 #define MAX_TRIES 10
 
-int mr_version(void) { return 4; }
+int mr_version(void) { return 5; }
 long mr_problem_size(void) { return (long)sizeof(mr_problem); }
 
 static int full_dim(int kind) { return kind == 0 ? 6 : 3; }

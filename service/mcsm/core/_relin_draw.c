@@ -241,45 +241,73 @@ int mr_recentre(const double *src, double *dst, long len, long n, const uint8_t 
     return rc;
 }
 
-/* The chart coordinates in which some frame idx[0..k) varies: bits 0-5 of masks[0] the pose
- * coordinates (t, 2 vec(m^-1 q) around the frame's chordal mean m), bits 0-2 of masks[1] the
- * point ones; a kind with no frame gets every bit. A coordinate varies when a sample differs
- * from the first in it (exactly). Frames whose qx and qy are all zero (a planar map) have no
- * variation in rx, ry (the chart's are then +-0 too), so only frames that could change the
- * answer are charted, and the scan stops once every bit is set. */
+/* Sets in live[pt] (pt: the frame is a point) the bits of the chart coordinates in which one
+ * frame x (7 x n) varies, those already set skipped: bits 0-5 the pose coordinates (t, 2 vec(m^-1
+ * q) around the frame's chordal mean m; mq: m, or NULL to compute it), bits 0-2 the point ones.
+ * A coordinate varies when a sample differs from the first in it (exactly). A frame whose qx
+ * and qy are all zero (a planar map) has no variation in rx, ry (the chart's are then +-0
+ * too), so it is charted only where that could change the answer. */
+static void active_frame(const double *x, long n, int pt, const double *mq, int64_t *live) {
+    for (int c = 0; c < 3; c++) {  /* whole-row reductions: they vectorise */
+        if (live[pt] & ((int64_t)1 << c)) continue;
+        const double *row = x + c * n, first = row[0];
+        int differ = 0;
+        for (long i = 1; i < n; i++) differ |= row[i] != first;
+        if (differ) live[pt] |= (int64_t)1 << c;
+    }
+    if (pt || (live[0] & 56) == 56) return;
+    int need = !(live[0] & 32);
+    if (!need && (live[0] & 24) != 24) {
+        const double *qx = x + 4 * n, *qy = x + 5 * n;
+        int nonzero = 0;
+        for (long i = 0; i < n; i++) nonzero |= (qx[i] != 0.0) | (qy[i] != 0.0);
+        need = nonzero;
+    }
+    if (!need) return;
+    double m[4], v0[6], v[6];
+    if (mq == NULL) chordal_mean(x + 3 * n, n, m);
+    else memcpy(m, mq, sizeof m);
+    chart_of(x, n, 0, m, v0);
+    for (long i = 1; i < n && (live[0] & 56) != 56; i++) {
+        chart_of(x, n, i, m, v);
+        for (int c = 3; c < 6; c++)
+            if (v[c] != v0[c]) live[0] |= (int64_t)1 << c;
+    }
+}
+
+/* The chart coordinates in which some frame idx[0..k) varies (active_frame): bits 0-5 of
+ * masks[0] the pose coordinates, bits 0-2 of masks[1] the point ones; a kind with no frame gets
+ * every bit. The scan stops once every bit is set. */
 void mr_active(const double *rows, const int64_t *idx, long k, long n, const uint8_t *point,
                int64_t *masks) {
     int64_t live[2] = {0, 0}, seen[2] = {0, 0};
     const int64_t full[2] = {63, 7};
     for (long j = 0; j < k; j++) {
         if (live[0] == full[0] && live[1] == full[1]) break;
-        const double *x = rows + idx[j] * 7 * n;
         int pt = point[j] ? 1 : 0;
         seen[pt] = 1;
-        for (int c = 0; c < 3; c++) {  /* whole-row reductions: they vectorise */
-            if (live[pt] & ((int64_t)1 << c)) continue;
-            const double *row = x + c * n, first = row[0];
-            int differ = 0;
-            for (long i = 1; i < n; i++) differ |= row[i] != first;
-            if (differ) live[pt] |= (int64_t)1 << c;
+        active_frame(rows + idx[j] * 7 * n, n, pt, NULL, live);
+    }
+    masks[0] = seen[0] ? live[0] : full[0];
+    masks[1] = seen[1] ? live[1] : full[1];
+}
+
+/* mr_means of frames idx[0..k) and, in the same pass (each frame read while it is in the
+ * cache), mr_active of those among them other than frame 0 (the root), with each frame's
+ * chordal mean shared: the same values as the two calls. */
+void mr_means_active(const double *rows, const int64_t *idx, long k, long n,
+                     const uint8_t *point, double *out, int64_t *masks) {
+    int64_t live[2] = {0, 0}, seen[2] = {0, 0};
+    const int64_t full[2] = {63, 7};
+    for (long j = 0; j < k; j++) {
+        mr_means(rows, idx + j, 1, n, point + j, out + 7 * j);
+        if (idx[j] == 0 || (live[0] == full[0] && live[1] == full[1])) {
+            if (idx[j] != 0) seen[point[j] ? 1 : 0] = 1;
+            continue;
         }
-        if (pt || (live[0] & 56) == 56) continue;
-        int need = !(live[0] & 32);
-        if (!need && (live[0] & 24) != 24) {
-            const double *qx = x + 4 * n, *qy = x + 5 * n;
-            int nonzero = 0;
-            for (long i = 0; i < n; i++) nonzero |= (qx[i] != 0.0) | (qy[i] != 0.0);
-            need = nonzero;
-        }
-        if (!need) continue;
-        double m[4], v0[6], v[6];
-        chordal_mean(x + 3 * n, n, m);
-        chart_of(x, n, 0, m, v0);
-        for (long i = 1; i < n && (live[0] & 56) != 56; i++) {
-            chart_of(x, n, i, m, v);
-            for (int c = 3; c < 6; c++)
-                if (v[c] != v0[c]) live[0] |= (int64_t)1 << c;
-        }
+        int pt = point[j] ? 1 : 0;
+        seen[pt] = 1;
+        active_frame(rows + idx[j] * 7 * n, n, pt, pt ? NULL : out + 7 * j + 3, live);
     }
     masks[0] = seen[0] ? live[0] : full[0];
     masks[1] = seen[1] ? live[1] : full[1];

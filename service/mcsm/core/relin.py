@@ -25,7 +25,7 @@ from mcsm.errors import NumericalError
 Array = npt.NDArray[np.float64]
 Ints = npt.NDArray[np.int32]
 
-RELIN_VERSION = 4
+RELIN_VERSION = 5
 SPREAD_ROTATION_CAP = 0.3
 """Radians: a redraw's ``spread`` is lowered for a pose whose rotation deviations would get an
 RMS above this (to this, never below the posterior itself): the chart and the filter's updates
@@ -62,6 +62,7 @@ for _name, _args, _res in (
         ("mr_means", (_P, _P, _L, _L, _P, _P), None),
         ("mr_recentre", (_P, _P, _L, _L, _P, _P, _L, _P, _P), _I),
         ("mr_active", (_P, _P, _L, _L, _P, _P), None),
+        ("mr_means_active", (_P, _P, _L, _L, _P, _P, _P), None),
         ("mr_spread", (_P, _P, _L, _L, _P, _P), None),
         ("mr_transform", (_P, _I, _P, _P, _L, _P), None),
         ("mr_solve", (_P,), _I),
@@ -128,6 +129,18 @@ def active(buf: Array, idx: npt.NDArray[np.int64], point: npt.NDArray[np.uint8]
     p = np.ascontiguousarray(point, dtype=np.uint8)
     _lib.mr_active(ptr(buf), ptr(i), len(i), buf.shape[-1], ptr(p), ptr(out))
     return int(out[0]), int(out[1])
+
+
+def means_active(buf: Array, idx: npt.NDArray[np.int64], point: npt.NDArray[np.uint8]
+                 ) -> tuple[Array, tuple[int, int]]:
+    """:func:`means` of frames ``idx`` and :func:`active` of those other than frame 0, in one
+    pass over the frames (the same values as the two calls)."""
+    out = np.empty((len(idx), 7))
+    masks = np.zeros(2, dtype=np.int64)
+    i = np.ascontiguousarray(idx, dtype=np.int64)
+    p = np.ascontiguousarray(point, dtype=np.uint8)
+    _lib.mr_means_active(ptr(buf), ptr(i), len(i), buf.shape[-1], ptr(p), ptr(out), ptr(masks))
+    return out, (int(masks[0]), int(masks[1]))
 
 
 def spread(buf: Array, idx: npt.NDArray[np.int64], point: npt.NDArray[np.uint8]) -> Array:
@@ -292,4 +305,4 @@ def solve(problem: Problem, *, max_iter: int = 20, tol: float = 1e-6,
 __all__ = ["Problem", "Solution", "SolveStats", "moments", "means", "recentre", "spread",
            "transform",
            "normals",
-           "solve", "RELIN_VERSION"]
+           "solve", "means_active", "RELIN_VERSION"]

@@ -255,17 +255,29 @@ def estimates(smap: Relinearizable, h: FactorHistory, cid: int, ids: npt.NDArray
               rows: Array, flags: npt.NDArray[np.uint8]) -> Array:
     """Estimates of variables ``ids`` (of group ``cid``) in its root's frame: the map's means
     for frames it holds (from its host ``rows``), the recorded ones for removed frames."""
+    return _estimates(smap, h, cid, ids, rows, flags)[0]
+
+
+def _estimates(smap: Relinearizable, h: FactorHistory, cid: int, ids: npt.NDArray[np.int64],
+               rows: Array, flags: npt.NDArray[np.uint8]
+               ) -> tuple[Array, tuple[int, int] | None]:
+    """:func:`estimates`, and :func:`active_coordinates` read in the same pass where the held
+    frames are every frame of the component (else None)."""
     c = smap._comps[cid]
     kind = h.vars["kind"][ids]
     x = relin.transform(h.groups[cid].world, h.vars["est"][ids], kind, invert=True)
     alive = np.flatnonzero(h.vars["alive"][ids])
+    masks = None
     if len(alive):
         idx = np.array([c.index[h.frame_of[int(v)]] for v in ids[alive]], dtype=np.int64)
-        x[alive] = relin.means(rows, idx, flags[idx])
+        if len(idx) == len(rows) and np.array_equal(np.sort(idx), np.arange(len(rows))):
+            x[alive], masks = relin.means_active(rows, idx, flags[idx])
+        else:
+            x[alive] = relin.means(rows, idx, flags[idx])
     root = h.var_of.get(c.root)
     if root is not None:
         x[ids == root] = IDENTITY
-    return np.ascontiguousarray(x)
+    return np.ascontiguousarray(x), masks
 
 
 def _trim_thresholds(robust: npt.NDArray[np.uint8], w: Array, kind: npt.NDArray[np.int32]
@@ -306,14 +318,15 @@ def _problem(smap: Relinearizable, h: FactorHistory, cid: int, ids: npt.NDArray[
         pdata.append(block)
         pdoff.append(pdoff[-1] + len(block))
         prows.append(p.r.shape[0])
-    pose_active, point_active = active_coordinates(rows, flags)
+    x, masks = _estimates(smap, h, cid, ids, rows, flags)
+    pose_active, point_active = active_coordinates(rows, flags) if masks is None else masks
     return relin.Problem(
         pose_active=pose_active, point_active=point_active,
         ftrim=_trim_thresholds(h.factors["robust"][fmask], h.factors["w"][fmask],
                                h.factors["kind"][fmask]),
         vkind=np.ascontiguousarray(h.vars["kind"][ids], dtype=np.int32),
         vfixed=(ids == root).astype(np.uint8), vkept=kept,
-        x=estimates(smap, h, cid, ids, rows, flags),
+        x=x,
         fkind=np.ascontiguousarray(h.factors["kind"][fmask], dtype=np.int32),
         fvars=np.ascontiguousarray(fv), fz=np.ascontiguousarray(h.factors["z"][fmask]),
         fw=np.ascontiguousarray(h.factors["w"][fmask]),
