@@ -28,8 +28,10 @@
 #include "_relin.h"
 
 #define MAX_TRIES 10
+/* halvings of a step that does not lower the cost, before the damping grows */
+#define BACKTRACK 6
 
-int mr_version(void) { return 5; }
+int mr_version(void) { return 6; }
 long mr_problem_size(void) { return (long)sizeof(mr_problem); }
 
 static int full_dim(int kind) { return kind == 0 ? 6 : 3; }
@@ -460,7 +462,7 @@ int mr_solve(mr_problem *P) {
     for (int round = 0; round < 2; round++) {
         long it0 = it;
         while (it - it0 < P->max_iter) {
-            int accepted = 0;
+            int accepted = 0, full = 1;
             double cn = 0.0;
             for (int t = 0; t < MAX_TRIES; t++) {
                 mr_factorise(S, lambda, slot);
@@ -470,10 +472,20 @@ int mr_solve(mr_problem *P) {
                 for (long i = 0; i < nscal; i++) S->dx[i] = -S->dx[i];
                 retract_all(P, S, P->x, S->dx, xn);
                 cn = evaluate(&C, xn, 0, prior_r, prior_j);
+                /* a step that does not lower the cost is halved (a backtracking line search
+                 * along it) before the damping grows: along a long chain's flat, curved
+                 * valley the full step overshoots and a damped one barely moves */
+                for (int b = 0; b < BACKTRACK && !(cn < cost); b++) {
+                    full = 0;
+                    for (long i = 0; i < nscal; i++) S->dx[i] = 0.5 * S->dx[i];
+                    retract_all(P, S, P->x, S->dx, xn);
+                    cn = evaluate(&C, xn, 0, prior_r, prior_j);
+                }
                 if (cn < cost) {
                     accepted = 1;
                     break;
                 }
+                full = 1;
                 lambda = lambda == 0.0 ? 1e-5 : lambda * 10.0;
             }
             it++;
@@ -483,7 +495,9 @@ int mr_solve(mr_problem *P) {
             cost = cn;
             lambda = lambda * 0.1;
             if (lambda < 1e-6) lambda = 0.0;
-            if (prev - cost <= P->tol * prev) break;
+            /* converged: a whole step that lowered the cost by less than tol (a halved step's
+             * small decrease says only that the step was too long) */
+            if (full && prev - cost <= P->tol * prev) break;
             double again = evaluate(&C, P->x, 1, prior_r, prior_j);
             if (again != again) goto out;
             set_hdiag(S);

@@ -25,7 +25,7 @@ from mcsm.errors import NumericalError
 Array = npt.NDArray[np.float64]
 Ints = npt.NDArray[np.int32]
 
-RELIN_VERSION = 5
+RELIN_VERSION = 6
 SPREAD_ROTATION_CAP = 0.3
 """Radians: a redraw's ``spread`` is lowered for a pose whose rotation deviations would get an
 RMS above this (to this, never below the posterior itself): the chart and the filter's updates
