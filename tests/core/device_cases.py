@@ -1,7 +1,9 @@
 """The loop closures the device kernel is compared on, bit for bit, against the CPU kernel: every
-option set of the joint update, point observations and three forced failures (the gain bound,
-a NaN in one frame, a quaternion pushed to zero). Shared by tests/core/test_device_emulation.py
-(the emulated device) and benchmarks/gpu_check.py (a real GPU).
+option set of the joint update, point observations, three forced failures (the gain bound, a
+NaN in one frame, a quaternion pushed to zero) and a sample the apply step rescues (one nearly
+opposite its frame's centre, whose linear move crosses zero). Shared by
+tests/core/test_device_emulation.py (the emulated device) and benchmarks/gpu_check.py (a real
+GPU).
 """
 
 from __future__ import annotations
@@ -30,6 +32,30 @@ def component(n: int, rng: np.random.Generator) -> StochasticMap:
     return m
 
 
+def opposite_sample_map(n: int, om: float = 0.25) -> tuple[StochasticMap, np.ndarray]:
+    """A planar edge a→b whose sample 0 points 3 rad (172°) away from the others, and a
+    precise re-observation of it: the linear move in the quaternion's coordinates takes that
+    sample's quaternion through zero (w10000's step 2445 in small, where one sample of 1000 had
+    drifted 2.5-3.1 rad from its frames' means). The map and the observation."""
+    from mcsm_client.sampling import sample_planar
+
+    rng = np.random.default_rng(5)
+    ab = np.zeros((n, 7))
+    ab[:, 0] = 5.0 + 0.5 * rng.standard_normal(n)
+    ab[:, 1] = 0.5 * rng.standard_normal(n)
+    th = 0.3 * rng.standard_normal(n)
+    th[0] = 3.0
+    ab[:, 3], ab[:, 6] = np.cos(th / 2), np.sin(th / 2)
+    obs = sample_planar(np.array([5.0, 0.0, om]), np.diag([0.05, 0.05, 0.02]) ** 2,
+                        n_samples=n, rng=rng)
+    m = StochasticMap(n, gate=None, relinearize=None, threads=1)
+    m.update("a", "b", ab)
+    return m, obs
+
+
+FAILURES = ("wmax", "nan", "tiny-q")
+"""The tamperings that make frames fail (the others must pass)."""
+
 # name: (options of the pass, point observation, tampering)
 CASES: dict[str, tuple[dict[str, Any], bool, str]] = {
     "default": (dict(space="tangent", gain="direct", shrink=4.0, inflation=1.0), False, ""),
@@ -50,6 +76,8 @@ CASES: dict[str, tuple[dict[str, Any], bool, str]] = {
                          False, "nan"),
     "quaternion-to-zero": (dict(space="tangent", gain="direct", shrink=4.0, inflation=1.0),
                            False, "tiny-q"),
+    "opposite-sample-rescued": (dict(space="tangent", gain="direct", shrink=4.0,
+                                     inflation=1.0), False, "opposite"),
 }
 
 
@@ -57,10 +85,14 @@ def frame_case(name: str, n: int) -> tuple[dict[str, Any], joint.Prepared]:
     """One loop closure's frame pass inputs for case ``name``."""
     opts, point, tamper = CASES[name]
     rng = np.random.default_rng(20261201 + n)
-    m = component(n, rng)
-    c = m._comps[m._where["p0"]]
-    a, b = ("p3", "l15") if point else ("p3", "p21")
-    x = m.query(a, b)[rng.permutation(n)]
+    if tamper == "opposite":
+        m, x = opposite_sample_map(n)
+        a, b = "a", "b"
+    else:
+        m = component(n, rng)
+        a, b = ("p3", "l15") if point else ("p3", "p21")
+        x = m.query(a, b)[rng.permutation(n)]
+    c = m._comps[m._where[a]]
     x_rows = to_rows(x[:, :3] if point else x)
     rule = str(opts.get("rule", "ensrf"))
     prep = joint.prepare(c, c.index[a], c.index[b], x_rows, point, str(opts["space"]), rule)

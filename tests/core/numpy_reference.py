@@ -65,7 +65,7 @@ from mcsm.core.at import (
     to_space,
 )
 from mcsm.core.names import FRAME_RULE, is_frame_name
-from mcsm.core.quat import L_INDEX, L_SIGN, qconj, qrot
+from mcsm.core.quat import L_INDEX, L_SIGN, qconj, qmul, qrot
 from mcsm.errors import (
     FrameExists,
     InvalidOperation,
@@ -248,6 +248,7 @@ class StochasticMap:
         self._next_id = 0
         self.threads = default_threads() if threads is None else threads
         self._spare: Array | None = None  # the edge array the last joint update replaced
+        self.rescued = 0  # samples the joint update's rescue moved on the manifold (_rescue)
 
     # ------------------------------------------------------------------ introspection
 
@@ -673,6 +674,10 @@ class StochasticMap:
                 o += new_mean[s, None, :]
             q = o[..., 3:]
             norm = np.sqrt(np.einsum("mnk,mnk->mn", q, q))
+            low = np.nonzero(norm <= 0.1)
+            if len(low[0]):  # samples nearly opposite their frame's centre: the kernel's rescue
+                self.rescued += _rescue(q, norm, low, w, c_xy_t[s], edges[s],
+                                        (mean if new_mean is None else new_mean)[s])
             # the unit quaternions moved by bounded increments; min/max propagate NaN
             if not (norm.min() > 0.1 and norm.max() < 1e10):
                 return False
@@ -822,6 +827,24 @@ class StochasticMap:
         y, q_ref = to_space(h, self.space)
         z, _ = to_space(x, self.space, q_ref)
         return y, z
+
+
+def _rescue(q: Array, norm: Array, low: tuple[Array, ...], w: Array, c_xy_t: Array,
+            edges: Array, centre: Array) -> int:
+    """The samples ``low`` (frame, sample) whose linear move collapsed their quaternion: the
+    move's rotation read in the tangent at the frame's centre, ``h = vec(c⁻¹ ⊗ Δq)``, applied
+    on the manifold, ``q ⊗ (√(1 − |h|²), h)`` (kernel_common.h, ``mk_joint_rescue``); written
+    to ``q`` with a unit ``norm``. Returns how many."""
+    f, i = low
+    dq = np.einsum("jp,jpd->jd", w[i], c_xy_t[f])[:, 3:]
+    c = centre[f, 3:] / np.linalg.norm(centre[f, 3:], axis=1, keepdims=True)
+    h = qmul(qconj(c), dq)[:, 1:]
+    hh = np.sum(h * h, axis=1)
+    step = np.concatenate([np.sqrt(np.clip(1.0 - hh, 0.0, None))[:, None], h], axis=1)
+    moved = qmul(edges[f, i, 3:], step)
+    q[f, i] = moved
+    norm[f, i] = np.linalg.norm(moved, axis=1)
+    return len(f)
 
 
 def _tangent_part(a: Array, q_bar: Array) -> Array:

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from mcsm import StochasticMap
 
+from tests.core import device_cases
 from tests.core import numpy_reference as ref
 from tests.helpers import random_at
 
@@ -110,3 +111,23 @@ def test_paper_kernel_agrees_with_its_numpy_version() -> None:
         compared += 1
     assert compared == 60
     assert worst < 1e-9, f"worst error {worst:.3g} of the update's move"
+
+
+@pytest.mark.parametrize("n", [50, 200, 1003])
+def test_a_sample_opposite_its_frames_centre_is_moved_on_the_manifold(n: int) -> None:
+    """The update that used to be refused ("pushed quaternions to zero") is applied: the
+    collapsed sample is moved by its rotation step on the manifold (checked against the numpy
+    reference, which writes the rescue again), every quaternion stays unit, and the sample
+    comes back towards the others instead of staying opposite them."""
+    m, obs = device_cases.opposite_sample_map(n)
+    r = ref.from_snapshot(m.snapshot(), threads=1)
+    before = m.edges("a")
+    m.update("a", "b", obs)
+    r.update("a", "b", obs)
+    assert r.rescued == 1, "the linear move did not collapse: the case tests nothing"
+    got, want = m.edges("a"), r.edges("a")
+    assert np.max(np.abs(got - want)) < 1e-9 * np.max(np.abs(want - before))
+    q = m.query("a", "b")[:, 3:]
+    assert np.max(np.abs(np.linalg.norm(q, axis=1) - 1.0)) < 1e-15
+    heading = 2.0 * np.arctan2(q[:, 3], q[:, 0])
+    assert abs(heading[0] - np.median(heading)) < 1.5  # was 3 rad away

@@ -28,7 +28,7 @@ static inline v4 ld4(const double *p) { return mk_lane_load(p); }
 static inline double hsum(v4 v) { return mk_lanes(v[0], v[1], v[2], v[3]); }
 static inline v4 splat(double x) { return mk_lane_splat(x); }
 
-int mk_version(void) { return 2; }
+int mk_version(void) { return 3; }
 
 /* 1 if this CPU runs the AVX2 build of this same source (same bits, about 7x faster: the
  * four lanes become one register); the baseline build answers. */

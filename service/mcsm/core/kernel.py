@@ -23,7 +23,7 @@ import numpy.typing as npt
 
 Array = npt.NDArray[np.float64]
 
-KERNEL_VERSION = 2
+KERNEL_VERSION = 3
 OK, NONFINITE_GAIN, BAD_QUATERNION, NONFINITE, BAD_ARGS = range(5)
 
 

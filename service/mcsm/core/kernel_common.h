@@ -51,6 +51,7 @@ MK_FN mk_lane mk_lane_sqrt(mk_lane v) {
     return r;
 }
 MK_FN int mk_lane_all(mk_lane_mask m) { return (m[0] & m[1] & m[2] & m[3]) != 0; }
+MK_FN double mk_lane_get(mk_lane v, int l) { return v[l]; }
 #else
 #define MK_LANES 1
 typedef double mk_lane;
@@ -60,6 +61,7 @@ MK_FN mk_lane mk_lane_load(const double *p) { return *p; }
 MK_FN void mk_lane_store(double *p, mk_lane v) { *p = v; }
 MK_FN mk_lane mk_lane_sqrt(mk_lane v) { return sqrt(v); }
 MK_FN int mk_lane_all(mk_lane_mask m) { return m != 0; }
+MK_FN double mk_lane_get(mk_lane v, int l) { (void)l; return v; }
 #endif
 
 #define MK_OK 0
@@ -369,6 +371,9 @@ MK_FN int mk_joint_gain(const mk_joint_args *A, const double *x0, const double *
  * MK_FLAG_BAD_QUATERNION if a quaternion's norm was not in (0.1, 1e10) (or NaN) and
  * MK_FLAG_NONFINITE if a translation is not finite. p and inflate are constants where the
  * caller specialises on them. */
+MK_FN int mk_joint_rescue(const double *cxy, const double *nmean, int p, const double *x,
+                          long xs, const double *w, long ws, double *o, long os);
+
 MK_FN int mk_joint_apply(const double *cxy, const double *nmean, int inflate, double lam,
                          int p, const double *x, long xs, const double *w, long ws, double *o,
                          long os) {
@@ -386,10 +391,50 @@ MK_FN int mk_joint_apply(const double *cxy, const double *nmean, int inflate, do
     for (int d = 3; d < 7; d++) mk_lane_store(o + d * os, v[d] / sq);
     /* NaN fails both comparisons; x * 0 is NaN for an infinity or a NaN */
     int flags = 0;
-    if (!mk_lane_all((sq > 0.1) & (sq < 1e10))) flags |= MK_FLAG_BAD_QUATERNION;
+    if (!mk_lane_all((sq > 0.1) & (sq < 1e10))) {
+        /* rare: a sample far from the frame's centre; each collapsed one is rescued */
+        for (int l = 0; l < MK_LANES; l++) {
+            double s = mk_lane_get(sq, l);
+            if (s > 0.1 && s < 1e10) continue;
+            if (!(s <= 0.1) || mk_joint_rescue(cxy, nmean, p, x + l, xs, w + l, ws, o + l, os))
+                flags |= MK_FLAG_BAD_QUATERNION;
+        }
+    }
     if (!mk_lane_all((v[0] * 0.0 == 0.0) & (v[1] * 0.0 == 0.0) & (v[2] * 0.0 == 0.0)))
         flags |= MK_FLAG_NONFINITE;
     return flags;
+}
+
+/* One sample whose moved quaternion collapsed (norm at most 0.1: the linear move in the
+ * quaternion's coordinates, exact to first order near the frame's centre, crossed zero for a
+ * sample nearly opposite it): its rotation move, read in the tangent at the centre nmean
+ * (where the gain's quaternion rows live: 0.5 qc (0, d) for the chart step d), applied on the
+ * manifold instead, q (+) d = q (sqrt(1 - |d/2|^2), d/2), without inflation; o's quaternion
+ * (the sample's translation is the linear one, already written). Row d's value at
+ * x + d * xs, weight k's at w + k * ws. Returns 1 if it cannot (a centre or a sample that is
+ * not finite), else 0. */
+MK_FN int mk_joint_rescue(const double *cxy, const double *nmean, int p, const double *x,
+                          long xs, const double *w, long ws, double *o, long os) {
+    double acc[4];
+    for (int d = 0; d < 4; d++) {
+        double a = 0.0;
+        for (int k = 0; k < p; k++) a += w[k * ws] * cxy[k * 7 + 3 + d];
+        acc[d] = a;
+    }
+    double cn = sqrt(nmean[3] * nmean[3] + nmean[4] * nmean[4] + nmean[5] * nmean[5] +
+                     nmean[6] * nmean[6]);
+    if (!(cn > 0.0 && cn < 1e10)) return 1;
+    double c[4] = {nmean[3] / cn, nmean[4] / cn, nmean[5] / cn, nmean[6] / cn};
+    double h[4];
+    mk_qmul(c[0], -c[1], -c[2], -c[3], acc[0], acc[1], acc[2], acc[3], h);
+    double hh = h[1] * h[1] + h[2] * h[2] + h[3] * h[3];
+    double hw = hh < 1.0 ? sqrt(1.0 - hh) : 0.0;
+    double q[4];
+    mk_qmul(x[3 * xs], x[4 * xs], x[5 * xs], x[6 * xs], hw, h[1], h[2], h[3], q);
+    double s = sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+    if (!(s > 0.1 && s < 1e10)) return 1;
+    for (int d = 0; d < 4; d++) o[(3 + d) * os] = q[d] / s;
+    return 0;
 }
 
 /* the frame's code from its per-sample flags: a bad quaternion first, then a non-finite
