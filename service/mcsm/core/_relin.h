@@ -1,8 +1,8 @@
 /* Shared declarations of mcsm's relinearisation kernel (_relin.c: the factor graph's
- * Gauss-Newton / Levenberg-Marquardt solve; _relin_order.c: the elimination order and the
- * factor's structure; _relin_chol.c: the sparse block Cholesky factorisation and solves;
- * _relin_draw.c: input moments, pose transforms, the counter-based normal generator and the
- * redraw).
+ * Gauss-Newton / Levenberg-Marquardt solve with a backtracking line search; _relin_order.c:
+ * the elimination order and the factor's structure; _relin_chol.c: the sparse block Cholesky
+ * factorisation and solves; _relin_draw.c: input moments, pose transforms, the
+ * counter-based normal generator and the redraw).
  *
  * The same portability rules as _kernel.c (README "Portable arithmetic"): only IEEE +, -, *,
  * / and sqrt, every sum in a fixed order, no libm transcendental function, built with the same

@@ -288,8 +288,10 @@ class Solution:
 
 def solve(problem: Problem, *, max_iter: int = 20, tol: float = 1e-6,
           keep_factor: bool = True) -> Solution:
-    """Gauss-Newton / Levenberg-Marquardt from ``problem.x`` (updated in place), then the
-    factorisation at the result (``max_iter=0``: the factorisation at ``x`` only). With
+    """Gauss-Newton / Levenberg-Marquardt from ``problem.x`` (updated in place; a step that
+    does not lower the cost is halved up to 6 times before the damping grows, and only a whole
+    step's decrease below ``tol`` of the cost stops it), then the factorisation at the result
+    (``max_iter=0``: the factorisation at ``x`` only). With
     ``keep_factor=False`` the solution and its statistics only (the same ``x``, one
     factorisation fewer: a re-centring); :meth:`Solution.redraw` and
     :meth:`Solution.marginal` then raise.
