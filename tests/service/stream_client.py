@@ -11,6 +11,7 @@ before then). Exit 0 when every update it sent was acknowledged.
 
 from __future__ import annotations
 
+import logging
 import sys
 import time
 from pathlib import Path
@@ -22,6 +23,9 @@ from mcsm_client.sampling import sample_planar
 
 def main(argv: list[str]) -> int:
     ep, map_name, no, n, acks, stop, timeout = argv
+    # the client's retries (with their reasons) in this process's log, for a failing test
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     c_no, n_samples, stop_path = int(no), int(n), Path(stop)
     rng = np.random.default_rng(2000 + c_no)
     cov = np.diag([0.05**2, 0.05**2, 0.0005**2])
