@@ -235,6 +235,56 @@ def test_the_recentring_kernel_gives_the_same_bits_copied_or_in_place() -> None:
     assert np.isnan(out[9:]).all()  # rows past the component's length are not written
 
 
+def _split(bounds: list[int]):  # type: ignore[no-untyped-def]
+    """A runner over fixed ranges (their ends scaled into [0, m)), last range first: what a
+    thread pool may do, in the worst order."""
+    def run(fn, m):  # type: ignore[no-untyped-def]
+        cuts = sorted({0, m, *(min(b, m) for b in bounds)})
+        codes = [fn(lo, hi) for lo, hi in reversed(list(zip(cuts, cuts[1:], strict=False)))]
+        return codes[::-1]
+    return run
+
+
+def test_the_recentring_passes_give_the_same_values_over_any_split_of_the_frames() -> None:
+    """The shift and the means pass run over frame ranges on the map's threads: any split,
+    run in any order, gives the bytes of one call, and the masks of a split where one part
+    holds only points and another only poses are the whole's (a kind no part saw: every
+    bit)."""
+    from mcsm.core import relin
+
+    rng = np.random.default_rng(9)
+    src = _buffer(rng, 12, 37, planar=False)
+    flags = np.zeros(len(src), dtype=np.uint8)
+    flags[[8, 9, 10]] = 1
+    src[[8, 9, 10], 3] = 1.0
+    src[[8, 9, 10], 4:] = 0.0
+    src[[8, 9, 10], 2] = 0.5  # the points never vary in z
+    idx = np.array([2, 4, 5, 7, 9, 10], dtype=np.int64)
+    mu = relin.means(src, idx, flags[idx])
+    target = mu + rng.normal(scale=0.1, size=mu.shape)
+    target[:, 3:] /= np.linalg.norm(target[:, 3:], axis=1, keepdims=True)
+    whole = np.full_like(src, np.nan)
+    assert relin.recentre(src, whole, 11, flags, idx, mu, target) == relin.OK
+    order = np.array([3, 1, 7, 2, 5, 0, 9, 10, 8], dtype=np.int64)  # poses, then points
+    means, masks = relin.means_active(src, order, flags[order])
+    assert masks[1] == 0b011  # the points vary in x and y only
+    points_only = np.array([8, 9], dtype=np.int64)
+    assert relin.means_active(src, points_only, flags[points_only])[1][0] == 0b111111
+    for bounds in ([1], [4, 5], [1, 2, 3, 6, 10], [6], list(range(1, 12))):
+        split = np.full_like(src, np.nan)
+        assert relin.recentre(src, split, 11, flags, idx, mu, target, _split(bounds)) == \
+            relin.OK
+        assert split[:11].tobytes() == whole[:11].tobytes(), bounds
+        assert np.isnan(split[11:]).all()
+        m2, k2 = relin.means_active(src, order, flags[order], _split(bounds))
+        assert m2.tobytes() == means.tobytes() and k2 == masks, bounds
+    bad = src.copy()
+    bad[7, 0, 3] = np.inf
+    out = np.empty_like(src)
+    assert relin.recentre(bad, out, 11, flags, idx, mu, target, _split([2, 9])) == \
+        relin.NONFINITE  # a range that failed is reported whichever range it was
+
+
 def test_a_recentring_orders_its_solve_freely_and_finds_the_same_solution() -> None:
     """A re-centring redraws nothing, so its solve need not eliminate the kept frames last:
     on a bounded planar map (each older pose removed, landmarks seen again) the free

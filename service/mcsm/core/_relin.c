@@ -31,7 +31,7 @@
 /* halvings of a step that does not lower the cost, before the damping grows */
 #define BACKTRACK 6
 
-int mr_version(void) { return 6; }
+int mr_version(void) { return 7; }
 long mr_problem_size(void) { return (long)sizeof(mr_problem); }
 
 static int full_dim(int kind) { return kind == 0 ? 6 : 3; }

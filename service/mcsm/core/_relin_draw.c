@@ -141,25 +141,52 @@ int mr_moments(const double *x, long n, int point, double *z, double *w) {
     return MR_OK;
 }
 
+/* The mean pose of one frame x (7 x n): each translation row summed in sample order, divided
+ * by n; the rotation chordal_mean's, or the identity for a point. One loop carries every sum
+ * (each in its own order, so the values are those of separate loops) so that the sums' chains
+ * of additions overlap instead of running one after another. */
+static void frame_mean(const double *x, long n, int point, double *o) {
+    const double *x0 = x, *x1 = x + n, *x2 = x + 2 * n;
+    double t0 = 0.0, t1 = 0.0, t2 = 0.0;
+    if (point) {
+        for (long i = 0; i < n; i++) {
+            t0 += x0[i];
+            t1 += x1[i];
+            t2 += x2[i];
+        }
+        o[3] = 1.0;
+        o[4] = o[5] = o[6] = 0.0;
+    } else {
+        const double *qw = x + 3 * n, *qx = x + 4 * n, *qy = x + 5 * n, *qz = x + 6 * n;
+        const double rw = qw[0], rx = qx[0], ry = qy[0], rz = qz[0];
+        double s0 = 0.0, s1 = 0.0, s2 = 0.0, s3 = 0.0;
+        for (long i = 0; i < n; i++) {
+            t0 += x0[i];
+            t1 += x1[i];
+            t2 += x2[i];
+            double dot = qw[i] * rw + qx[i] * rx + qy[i] * ry + qz[i] * rz;
+            double sg = dot < 0.0 ? -1.0 : 1.0;
+            s0 += sg * qw[i];
+            s1 += sg * qx[i];
+            s2 += sg * qy[i];
+            s3 += sg * qz[i];
+        }
+        double norm = sqrt(s0 * s0 + s1 * s1 + s2 * s2 + s3 * s3);
+        o[3] = s0 / norm;
+        o[4] = s1 / norm;
+        o[5] = s2 / norm;
+        o[6] = s3 / norm;
+    }
+    o[0] = t0 / (double)n;
+    o[1] = t1 / (double)n;
+    o[2] = t2 / (double)n;
+}
+
 /* Mean poses (translation mean, chordal mean rotation; a point: the identity rotation) of
  * frames idx[0..k) of a component's buffer (frames of 7 x n). */
 void mr_means(const double *rows, const int64_t *idx, long k, long n, const uint8_t *point,
               double *out) {
-    for (long j = 0; j < k; j++) {
-        const double *x = rows + idx[j] * 7 * n;
-        double *o = out + 7 * j;
-        for (int c = 0; c < 3; c++) {
-            double s = 0.0;
-            for (long i = 0; i < n; i++) s += x[c * n + i];
-            o[c] = s / (double)n;
-        }
-        if (point[j]) {
-            o[3] = 1.0;
-            o[4] = o[5] = o[6] = 0.0;
-        } else {
-            chordal_mean(x + 3 * n, n, o + 3);
-        }
-    }
+    for (long j = 0; j < k; j++) frame_mean(rows + idx[j] * 7 * n, n, point[j], out + 7 * j);
 }
 
 void mk_canonicalize(double *x, long n, int normalize);  /* _kernel.c */
@@ -190,23 +217,26 @@ static void recentre_rotations(const double *dq, const double *src, double *dst,
     }
 }
 
-/* Frames 0..len-1 of a component's buffer src copied to dst (the same buffer, or one of the
- * same shape), frames idx[0..k) (never the root, 0) moved from their means mu (mr_means) onto
+/* Frames lo..hi-1 of a component's buffer src copied to dst (the same buffer, or one of the
+ * same shape), those among idx[0..k) (never the root, 0) moved from their means mu (mr_means) onto
  * the poses tgt (both k x 7) on the way: t_i += t* - mean t and q_i <- (q* mean_q^-1) q_i,
  * normalised, so every sample keeps its chart deviation [t_i - mean t, 2 vec(mean_q^-1 q_i)].
- * Frames 1..len-1 are then canonicalised as the kernel does (points pinned). MR_NONFINITE if a
- * value is not finite afterwards (dst is then partly written). */
-int mr_recentre(const double *src, double *dst, long len, long n, const uint8_t *point,
+ * Frames other than 0 are then canonicalised as the kernel does (points pinned). Each frame's
+ * values depend on that frame only, so ranges may run on threads. MR_NONFINITE if a value is
+ * not finite afterwards (dst is then partly written). */
+int mr_recentre(const double *src, double *dst, long lo, long hi, long n, const uint8_t *point,
                 const int64_t *idx, long k, const double *mu, const double *tgt) {
+    long len = hi > lo ? hi - lo : 0;
     long *which = malloc(sizeof(long) * (size_t)(len ? len : 1));
     if (which == NULL) return MR_NO_MEMORY;
     for (long f = 0; f < len; f++) which[f] = -1;
-    for (long j = 0; j < k; j++) which[idx[j]] = j;
+    for (long j = 0; j < k; j++)
+        if (idx[j] >= lo && idx[j] < hi) which[idx[j] - lo] = j;
     int rc = MR_OK;
-    for (long f = 0; f < len && rc == MR_OK; f++) {
+    for (long f = lo; f < hi && rc == MR_OK; f++) {
         const double *x = src + f * 7 * n;
         double *o = dst + f * 7 * n;
-        long j = which[f];
+        long j = which[f - lo];
         if (j < 0 || f == 0) {
             if (o != x) memcpy(o, x, sizeof(double) * 7 * (size_t)n);
         } else {
@@ -293,10 +323,11 @@ void mr_active(const double *rows, const int64_t *idx, long k, long n, const uin
 }
 
 /* mr_means of frames idx[0..k) and, in the same pass (each frame read while it is in the
- * cache), mr_active of those among them other than frame 0 (the root), with each frame's
- * chordal mean shared: the same values as the two calls. */
-void mr_means_active(const double *rows, const int64_t *idx, long k, long n,
-                     const uint8_t *point, double *out, int64_t *masks) {
+ * cache), active_frame of those among them other than frame 0 (the root), with each frame's
+ * chordal mean shared: ls[0..1] the live bits of poses and points, ls[2..3] whether a pose, a
+ * point was seen. Both are unions over the frames, so runs over parts of idx combine by OR. */
+void mr_means_live(const double *rows, const int64_t *idx, long k, long n, const uint8_t *point,
+                   double *out, int64_t *ls) {
     int64_t live[2] = {0, 0}, seen[2] = {0, 0};
     const int64_t full[2] = {63, 7};
     for (long j = 0; j < k; j++) {
@@ -309,8 +340,20 @@ void mr_means_active(const double *rows, const int64_t *idx, long k, long n,
         seen[pt] = 1;
         active_frame(rows + idx[j] * 7 * n, n, pt, pt ? NULL : out + 7 * j + 3, live);
     }
-    masks[0] = seen[0] ? live[0] : full[0];
-    masks[1] = seen[1] ? live[1] : full[1];
+    ls[0] = live[0];
+    ls[1] = live[1];
+    ls[2] = seen[0];
+    ls[3] = seen[1];
+}
+
+/* mr_means of frames idx[0..k) and mr_active of those other than frame 0 in one pass
+ * (mr_means_live, finished): the same values as the two calls. */
+void mr_means_active(const double *rows, const int64_t *idx, long k, long n,
+                     const uint8_t *point, double *out, int64_t *masks) {
+    int64_t ls[4];
+    mr_means_live(rows, idx, k, n, point, out, ls);
+    masks[0] = ls[2] ? ls[0] : 63;
+    masks[1] = ls[3] ? ls[1] : 7;
 }
 
 /* Spread of frames idx[0..k) in each chart coordinate (mr_active's definition, kept as its

@@ -32,6 +32,7 @@ from mcsm.core.relinearize import (
     calibrating,
     host_rows,
     replace_rows,
+    runner,
     why_not,
 )
 from mcsm.core.storage import Component
@@ -114,8 +115,8 @@ def _shift(smap: Relinearizable, cid: int, alive: npt.NDArray[np.int64], rows: A
         out = spare if spare is not None and spare.shape == buf.shape else np.empty_like(buf)
         rows = buf
     # copied (a host component) or in place (a host copy), moved, canonicalised, checked
-    if relin.recentre(rows, out, len(comp), flags, slot, mean[moved], target[moved]) != \
-            relin.OK:
+    if relin.recentre(rows, out, len(comp), flags, slot, mean[moved], target[moved],
+                      runner(smap)) != relin.OK:
         raise NumericalError("the re-centring produced non-finite samples")
     if isinstance(comp, Component):
         smap._spare = comp.swap_buffer(out)

@@ -13,6 +13,7 @@ docs/design.md ("Relinearisation") describes the method.
 from __future__ import annotations
 
 import ctypes
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -25,7 +26,7 @@ from mcsm.errors import NumericalError
 Array = npt.NDArray[np.float64]
 Ints = npt.NDArray[np.int32]
 
-RELIN_VERSION = 6
+RELIN_VERSION = 7
 SPREAD_ROTATION_CAP = 0.3
 """Radians: a redraw's ``spread`` is lowered for a pose whose rotation deviations would get an
 RMS above this (to this, never below the posterior itself): the chart and the filter's updates
@@ -60,9 +61,10 @@ for _name, _args, _res in (
         ("mr_problem_size", (), _L),
         ("mr_moments", (_P, _L, _I, _P, _P), _I),
         ("mr_means", (_P, _P, _L, _L, _P, _P), None),
-        ("mr_recentre", (_P, _P, _L, _L, _P, _P, _L, _P, _P), _I),
+        ("mr_recentre", (_P, _P, _L, _L, _L, _P, _P, _L, _P, _P), _I),
         ("mr_active", (_P, _P, _L, _L, _P, _P), None),
         ("mr_means_active", (_P, _P, _L, _L, _P, _P, _P), None),
+        ("mr_means_live", (_P, _P, _L, _L, _P, _P, _P), None),
         ("mr_spread", (_P, _P, _L, _L, _P, _P), None),
         ("mr_transform", (_P, _I, _P, _P, _L, _P), None),
         ("mr_solve", (_P,), _I),
@@ -78,6 +80,13 @@ if _lib.mr_version() != RELIN_VERSION or _lib.mr_problem_size() != ctypes.sizeof
                                "bindings: reinstall (`pip install -e .`)")
 
 ptr = kernel.ptr
+Runner = Callable[[Callable[[int, int], int], int], list[int]]
+"""``run(fn, m)``: ``fn(lo, hi)`` over frame ranges covering ``[0, m)``, the codes in range
+order (:func:`mcsm.core.joint.run_ranges` with a thread count)."""
+
+
+def _one(fn: Callable[[int, int], int], m: int) -> list[int]:
+    return [fn(0, m)]
 
 
 def moments(x_rows: Array, point: bool) -> tuple[Array, Array]:
@@ -102,12 +111,15 @@ def means(buf: Array, idx: npt.NDArray[np.int64], point: npt.NDArray[np.uint8]) 
 
 
 def recentre(src: Array, dst: Array, length: int, point: npt.NDArray[np.uint8],
-             idx: npt.NDArray[np.int64], mu: Array, target: Array) -> int:
+             idx: npt.NDArray[np.int64], mu: Array, target: Array,
+             run: Runner | None = None) -> int:
     """Frames ``[0, length)`` of a component buffer ``src`` ``(cap, 7, N)`` into ``dst`` (the
     same array or one of its shape), frames ``idx`` (not the root) moved on the way from their
     means ``mu`` ``(k, 7)`` (:func:`means`) to ``target`` ``(k, 7)``, every sample keeping its
     chart deviation from the mean; frames ``1..length-1`` canonicalised as the kernel does
-    (``point``: the component's flags). The kernel's status (non-finite: ``dst`` is partly
+    (``point``: the component's flags). ``run(fn, m)``: how to run ``fn(lo, hi)`` over frame
+    ranges covering ``[0, m)`` (threads; the values do not depend on the split), else one
+    call. The kernel's status, the first range's that failed (non-finite: ``dst`` is partly
     written)."""
     if src.shape != dst.shape or not (src.flags.c_contiguous and dst.flags.c_contiguous):
         raise ValueError("src and dst must be C-contiguous buffers of one shape")
@@ -115,8 +127,14 @@ def recentre(src: Array, dst: Array, length: int, point: npt.NDArray[np.uint8],
     p = np.ascontiguousarray(point, dtype=np.uint8)
     m = np.ascontiguousarray(mu, dtype=np.float64)
     t = np.ascontiguousarray(target, dtype=np.float64)
-    return int(_lib.mr_recentre(ptr(src), ptr(dst), length, src.shape[-1], ptr(p), ptr(i),
-                                len(i), ptr(m), ptr(t)))
+    args = (ptr(src), ptr(dst))
+    rest = (src.shape[-1], ptr(p), ptr(i), len(i), ptr(m), ptr(t))
+
+    def one(lo: int, hi: int) -> int:
+        return int(_lib.mr_recentre(*args, lo, hi, *rest))
+
+    codes = (run or _one)(one, length)
+    return next((c for c in codes if c != OK), OK)
 
 
 def active(buf: Array, idx: npt.NDArray[np.int64], point: npt.NDArray[np.uint8]
@@ -131,16 +149,26 @@ def active(buf: Array, idx: npt.NDArray[np.int64], point: npt.NDArray[np.uint8]
     return int(out[0]), int(out[1])
 
 
-def means_active(buf: Array, idx: npt.NDArray[np.int64], point: npt.NDArray[np.uint8]
-                 ) -> tuple[Array, tuple[int, int]]:
+def means_active(buf: Array, idx: npt.NDArray[np.int64], point: npt.NDArray[np.uint8],
+                 run: Runner | None = None) -> tuple[Array, tuple[int, int]]:
     """:func:`means` of frames ``idx`` and :func:`active` of those other than frame 0, in one
-    pass over the frames (the same values as the two calls)."""
+    pass over the frames (the same values as the two calls); ``run`` as :func:`recentre`'s
+    (over parts of ``idx``: the masks are unions, so the split changes no value)."""
     out = np.empty((len(idx), 7))
-    masks = np.zeros(2, dtype=np.int64)
     i = np.ascontiguousarray(idx, dtype=np.int64)
     p = np.ascontiguousarray(point, dtype=np.uint8)
-    _lib.mr_means_active(ptr(buf), ptr(i), len(i), buf.shape[-1], ptr(p), ptr(out), ptr(masks))
-    return out, (int(masks[0]), int(masks[1]))
+    parts: dict[int, npt.NDArray[np.int64]] = {}
+
+    def one(lo: int, hi: int) -> int:
+        ls = parts[lo] = np.zeros(4, dtype=np.int64)
+        if hi > lo:
+            _lib.mr_means_live(ptr(buf), ptr(i[lo:hi]), hi - lo, buf.shape[-1], ptr(p[lo:hi]),
+                               ptr(out[lo:hi]), ptr(ls))
+        return OK
+
+    (run or _one)(one, len(i))
+    ls = np.bitwise_or.reduce(list(parts.values())) if parts else np.zeros(4, dtype=np.int64)
+    return out, (int(ls[0]) if ls[2] else 0b111111, int(ls[1]) if ls[3] else 0b111)
 
 
 def spread(buf: Array, idx: npt.NDArray[np.int64], point: npt.NDArray[np.uint8]) -> Array:

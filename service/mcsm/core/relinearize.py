@@ -29,11 +29,11 @@ from typing import Any, Protocol
 import numpy as np
 import numpy.typing as npt
 
-from mcsm.core import kernel, relin
+from mcsm.core import joint, kernel, relin
 from mcsm.core.factors import ADMITTED_KEEP, IDENTITY, FactorHistory, Prior
 from mcsm.core.forest import Store
 from mcsm.core.gate import chi2_quantile
-from mcsm.core.storage import to_rows
+from mcsm.core.storage import Component, to_rows
 from mcsm.errors import InvalidOperation, McsmError, NumericalError
 
 Array = npt.NDArray[np.float64]
@@ -48,6 +48,7 @@ class Relinearizable(Protocol):
     _spare: Array | None
     factor_history: FactorHistory | None
     policy: Policy | None
+    threads: int
 
     def _store(self, frames: list[str], is_point: list[bool], rows: Array) -> Store: ...
 
@@ -237,9 +238,17 @@ def _key(h: FactorHistory, cid: int) -> int:
 
 def host_rows(smap: Relinearizable, cid: int) -> tuple[Array, npt.NDArray[np.uint8]]:
     """Component ``cid``'s edges as host rows ``(M, 7, N)`` (a copy) and its point flags: the
-    only way this module reads a component, whatever memory it lives in."""
+    only way this module reads a component, whatever memory it lives in (one in host memory:
+    a plain copy of its buffer, not two transposing ones)."""
     c = smap._comps[cid]
+    if isinstance(c, Component):
+        return c.rows.copy(), c.point_flags[: len(c)].copy()
     return to_rows(c.edges()), np.array(c.point_list(), dtype=np.uint8)
+
+
+def runner(smap: Relinearizable) -> relin.Runner:
+    """The map's frame passes over ranges on its threads (:func:`joint.run_ranges`)."""
+    return lambda fn, m: joint.run_ranges(fn, m, smap.threads)
 
 
 def replace_rows(smap: Relinearizable, cid: int, rows: Array) -> None:
@@ -271,7 +280,7 @@ def _estimates(smap: Relinearizable, h: FactorHistory, cid: int, ids: npt.NDArra
     if len(alive):
         idx = np.array([c.index[h.frame_of[int(v)]] for v in ids[alive]], dtype=np.int64)
         if len(idx) == len(rows) and np.array_equal(np.sort(idx), np.arange(len(rows))):
-            x[alive], masks = relin.means_active(rows, idx, flags[idx])
+            x[alive], masks = relin.means_active(rows, idx, flags[idx], runner(smap))
         else:
             x[alive] = relin.means(rows, idx, flags[idx])
     root = h.var_of.get(c.root)
@@ -371,7 +380,9 @@ def relinearize_component(smap: Relinearizable, cid: int, *, readmit_only: bool 
     gset = set(ids.tolist())
     priors = [p for p in h.priors if int(p.vars[0]) in gset]
     kept = h.vars["alive"][ids].astype(np.uint8)
-    prob = _problem(smap, h, cid, ids, fmask, priors, kept)
+    # a component in host memory is read in place (the redraw writes into a copy)
+    host = (c.rows, c.point_flags[: len(c)]) if isinstance(c, Component) else host_rows(smap, cid)
+    prob = _problem(smap, h, cid, ids, fmask, priors, kept, host)
     sol = relin.solve(prob, max_iter=MAX_ITERATIONS, tol=TOLERANCE)
     readmitted = 0
     undo = None
@@ -385,7 +396,7 @@ def relinearize_component(smap: Relinearizable, cid: int, *, readmit_only: bool 
                 sol.close()
                 fmask = h.vars["group"][h.factors["vars"][:, 0]] == cid
                 x = prob.x
-                prob = _problem(smap, h, cid, ids, fmask, priors, kept)
+                prob = _problem(smap, h, cid, ids, fmask, priors, kept, host)
                 prob.x[:] = x  # from the solution without them
                 sol = relin.solve(prob, max_iter=MAX_ITERATIONS, tol=TOLERANCE)
         if readmit_only and not readmitted:
@@ -396,7 +407,7 @@ def relinearize_component(smap: Relinearizable, cid: int, *, readmit_only: bool 
             alive = np.flatnonzero(kept)
             slot[alive] = [c.index[h.frame_of[int(v)]] for v in ids[alive]]
             slot[ids == h.var_of[c.root]] = -1
-            out, flags = host_rows(smap, cid)
+            out, flags = (host[0].copy(), host[1]) if isinstance(c, Component) else host
             pol = smap.policy
             sol.redraw(out, slot, _key(h, cid), spread=1.0 if pol is None else pol.spread)
             st = sol.stats
