@@ -327,3 +327,178 @@ def test_a_recentring_orders_its_solve_freely_and_finds_the_same_solution() -> N
     assert nz_free <= nz_kept
     assert np.max(np.abs(x_free[:, :3] - x_kept[:, :3])) < 1e-9
     assert np.max(1.0 - np.abs(np.sum(x_free[:, 3:] * x_kept[:, 3:], axis=1))) < 1e-12
+
+
+def _pose_stream(m: StochasticMap, n: int, closures: int = 6) -> None:
+    """A 3-D pose chain with rotations, a landmark seen three times and ``closures`` loop
+    closures back to the start (every one a re-centring under the defaults)."""
+    from mcsm_client.sampling import sample_point, sample_pose
+
+    rng = np.random.default_rng(20261127)
+    cov = np.diag([0.01, 0.01, 0.01, 0.001, 0.001, 0.004])
+    step = np.array([1.0, 0.1, 0.0, 0.996, 0.0, 0.0, 0.0872])  # 10 degrees of yaw
+    for k in range(12):
+        m.update(f"x{k}", f"x{k + 1}", sample_pose(step, cov, n_samples=n, rng=rng))
+        if k in (2, 5, 8):
+            m.update(f"x{k}", "l0", sample_point([2.0, 0.5, 0.1], 0.02 * np.eye(3),
+                                                 n_samples=n, rng=rng))
+    for k in range(closures):
+        a, b = m.query("x0", f"x{12 - k}"), None
+        mean = a.mean(axis=0)
+        mean[3:] /= np.linalg.norm(mean[3:])
+        b = sample_pose(mean, cov, n_samples=n, rng=rng)
+        m.update("x0", f"x{12 - k}", b)
+
+
+def test_the_update_pass_keeps_the_frames_means_for_the_recentring(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A loop closure's frame pass takes every frame's mean and live chart coordinates while
+    the frame is in the cache: the bytes :func:`relin.means_active` gives over the updated
+    buffer; the re-centring's solve starts from them; its shift (a new buffer) forgets them."""
+    from mcsm.core import recentre as rmod
+    from mcsm.core import relin
+
+    seen = []
+    original = rmod.recentre_component
+
+    def checked(smap, cid):  # type: ignore[no-untyped-def]
+        c = smap._comps[cid]
+        kept = c.pass_means()
+        assert kept is not None
+        idx = np.arange(len(c), dtype=np.int64)
+        means, masks = relin.means_active(c.rows, idx, c.point_flags[: len(c)])
+        assert kept[0].tobytes() == means.tobytes()
+        assert relin.finish_masks(kept[1]) == masks
+        seen.append(masks)
+        out = original(smap, cid)
+        assert smap._comps[cid].pass_means() is None  # the shift swapped the buffer
+        return out
+
+    monkeypatch.setattr(rmod, "recentre_component", checked)
+    m = StochasticMap(64)
+    _pose_stream(m, 64)
+    assert len(seen) >= 5 and seen[-1] == (0b111111, 0b111)
+
+
+def test_the_kept_means_give_the_bits_of_a_separate_pass(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The same stream with the kept means ignored (a separate means pass before each solve)
+    ends in the same bytes."""
+    from mcsm.core.storage import Component
+
+    a = StochasticMap(64)
+    _pose_stream(a, 64)
+    monkeypatch.setattr(Component, "pass_means", lambda self: None)
+    b = StochasticMap(64)
+    _pose_stream(b, 64)
+    assert a.state_digest() == b.state_digest()
+
+
+def test_a_component_forgets_its_kept_means_on_every_change() -> None:
+    from mcsm.core.storage import Component
+
+    rng = np.random.default_rng(3)
+    rows = np.ascontiguousarray(_buffer(rng, 5, 8, planar=False)[:5])
+    c = Component([f"f{k}" for k in range(5)], [False] * 5, rows.copy())
+    ls = np.zeros(4, dtype=np.int64)
+    with pytest.raises(ValueError, match="one mean per frame"):
+        c.keep_means(np.zeros((4, 7)), ls, np.zeros(4))
+    changes = (lambda: c.append("g", False, rows[1]),
+               lambda: c.extend(["h"], [True], rows[2:3]),
+               lambda: c.delete(2),
+               lambda: c.swap_buffer(c.buffer.copy()),
+               c.written)
+    for change in changes:
+        c.keep_means(np.zeros((len(c), 7)), ls, np.zeros(len(c)))
+        assert c.pass_means() is not None
+        change()
+        assert c.pass_means() is None
+
+
+def test_a_recentring_shifts_in_place_only_where_nothing_can_overflow(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """After a loop closure's pass the shift writes into the component's own buffer (no spare
+    buffer to fill): the same bytes as the copying shift. It does so only with the pass's
+    means of that buffer and every translation, mean and target within 1e300 and every target
+    rotation's norm in [0.5, 2]; anything else (a NaN included) copies."""
+    from mcsm.core import recentre as rmod
+    from mcsm.core import relin
+    from mcsm.core.storage import Component
+
+    ways = []
+    original, ok = relin.recentre, rmod._shifts_finitely
+
+    def spy(src, dst, *args, **kwargs):  # type: ignore[no-untyped-def]
+        ways.append(src is dst)
+        return original(src, dst, *args, **kwargs)
+
+    monkeypatch.setattr(relin, "recentre", spy)
+    a = StochasticMap(64)
+    _pose_stream(a, 64)
+    assert len(ways) >= 5 and all(ways)
+    monkeypatch.setattr(rmod, "_shifts_finitely", lambda *args: False)
+    ways.clear()
+    b = StochasticMap(64)
+    _pose_stream(b, 64)
+    assert ways and not any(ways)
+    assert a.state_digest() == b.state_digest()
+
+    rng = np.random.default_rng(4)
+    rows = np.ascontiguousarray(_buffer(rng, 4, 8, planar=False)[:4])
+    c = Component(["r", "a", "b", "c"], [False] * 4, rows)
+    slot = np.array([1, 3], dtype=np.int64)
+    mean = relin.means(rows, slot, np.zeros(2, dtype=np.uint8))
+    target = mean.copy()
+    assert not ok(c, slot, mean, target)  # no kept means
+    big = np.ones(4)
+    c.keep_means(np.zeros((4, 7)), np.zeros(4, dtype=np.int64), big)
+    assert ok(c, slot, mean, target)
+    big[3] = 2e300
+    assert not ok(c, slot, mean, target)
+    big[3], big[2] = 1.0, np.inf  # a frame not moved does not matter
+    assert ok(c, slot, mean, target)
+    for k, value in ((0, 2e300), (3, 0.4), (3, np.nan), (1, np.inf)):
+        bad = target.copy()
+        bad[1, k] = value if k != 3 else 0.0
+        if k == 3:
+            bad[1, 3:] *= 0.0
+            bad[1, 3] = value
+        assert not ok(c, slot, mean, bad), (k, value)
+    far = mean.copy()
+    far[0, 2] = -2e300
+    assert not ok(c, slot, far, target)
+
+
+def test_a_relinearisation_redraws_into_the_spare_buffer_and_keeps_the_capacity(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A relinearisation of a component in host memory writes its redraw into the map's spare
+    buffer (mapped pages, no fresh memory), keeps the component's capacity (the next frame is
+    no copy of the whole component) and leaves the old buffer as the next spare: the same
+    bytes as a redraw into a fresh copy."""
+    from mcsm.core import relinearize as rz
+    from mcsm.core.storage import Component
+
+    a = StochasticMap(64)
+    _pose_stream(a, 64)
+    (cid, comp), = a._comps.items()
+    buf, spare, cap = comp.buffer, a._spare, comp.buffer.shape[0]
+    assert spare is not None and spare.shape == buf.shape
+    a.relinearize()
+    new = a._comps[cid]
+    assert new.buffer is spare and a._spare is buf and new.buffer.shape[0] == cap
+
+    def fresh(smap, c):  # type: ignore[no-untyped-def]
+        return c.rows.copy(), c.point_flags[: len(c)]
+
+    monkeypatch.setattr(rz, "_redraw_buffer", fresh)
+    b = StochasticMap(64)
+    _pose_stream(b, 64)
+    b.relinearize()
+    assert b._comps[cid].buffer.shape[0] == len(b._comps[cid])  # the copy's capacity
+    assert a.state_digest() == b.state_digest()
+    for m in (a, b):
+        m.update("x12", "x13", m.query("x11", "x12"))  # the next frame, the next closure
+        m.update("x0", "x13", m.query("x0", "x13"))
+    assert a.state_digest() == b.state_digest()
+    with pytest.raises(ValueError, match="at least M frames"):
+        Component.in_buffer(["r", "a"], [False, False], np.zeros((1, 7, 4)))

@@ -141,10 +141,10 @@ int mr_moments(const double *x, long n, int point, double *z, double *w) {
     return MR_OK;
 }
 
-/* The mean pose of one frame x (7 x n): each translation row summed in sample order, divided
- * by n; the rotation chordal_mean's, or the identity for a point. One loop carries every sum
- * (each in its own order, so the values are those of separate loops) so that the sums' chains
- * of additions overlap instead of running one after another. */
+/* The mean pose of one frame x (7 x n): each translation row summed in sample order, divided by
+ * n; the rotation chordal_mean's, or the identity for a point. One loop carries every sum (each
+ * in its own order, so the values are those of separate loops) so that their chains of
+ * additions overlap instead of running one after another. */
 static void frame_mean(const double *x, long n, int point, double *o) {
     const double *x0 = x, *x1 = x + n, *x2 = x + 2 * n;
     double t0 = 0.0, t1 = 0.0, t2 = 0.0;
@@ -180,6 +180,18 @@ static void frame_mean(const double *x, long n, int point, double *o) {
     o[0] = t0 / (double)n;
     o[1] = t1 / (double)n;
     o[2] = t2 / (double)n;
+}
+
+/* The largest magnitude of the translations of one frame x (7 x n) of finite values (a maximum
+ * needs no order: four running ones). */
+static double max_abs_translation(const double *x, long n) {
+    double b[4] = {0.0, 0.0, 0.0, 0.0};
+    long len = 3 * n, i = 0;
+    for (; i + 4 <= len; i += 4)
+        for (int l = 0; l < 4; l++) b[l] = fabs(x[i + l]) > b[l] ? fabs(x[i + l]) : b[l];
+    for (; i < len; i++) b[0] = fabs(x[i]) > b[0] ? fabs(x[i]) : b[0];
+    double m01 = b[0] > b[1] ? b[0] : b[1], m23 = b[2] > b[3] ? b[2] : b[3];
+    return m01 > m23 ? m01 : m23;
 }
 
 /* Mean poses (translation mean, chordal mean rotation; a point: the identity rotation) of
@@ -354,6 +366,37 @@ void mr_means_active(const double *rows, const int64_t *idx, long k, long n,
     mr_means_live(rows, idx, k, n, point, out, ls);
     masks[0] = ls[2] ? ls[0] : 63;
     masks[1] = ls[3] ? ls[1] : 7;
+}
+
+int mk_joint_frames(const mk_joint_args *A, const double *edges, double *out,
+                    const uint8_t *point, long lo, long hi);  /* _kernel.c */
+
+/* The joint update's frame pass over frames lo..hi-1 (mk_joint_frames, one frame at a time),
+ * each output frame's mean (into means + 7 f), the largest magnitude of its translations (big[f])
+ * and live chart coordinates (frames other than 0, into ls, mr_means_live's layout) taken while
+ * it is in the cache: the values of mk_joint_frames and then mr_means_live over frames
+ * lo..hi-1 of out. */
+int mr_joint_frames_means(const mk_joint_args *A, const double *edges, double *out,
+                          const uint8_t *point, long lo, long hi, double *means, double *big,
+                          int64_t *ls) {
+    long n = A->n;
+    int64_t live[2] = {ls[0], ls[1]};
+    int rc = 0;
+    for (long f = lo; f < hi; f++) {
+        rc = mk_joint_frames(A, edges, out, point, f, f + 1);
+        if (rc != 0) break;
+        const double *o = out + f * 7 * n;
+        frame_mean(o, n, point[f], means + 7 * f);
+        big[f] = max_abs_translation(o, n);
+        if (f == 0) continue;
+        int pt = point[f] ? 1 : 0;
+        ls[2 + pt] = 1;
+        if (live[0] == 63 && live[1] == 7) continue;
+        active_frame(o, n, pt, pt ? NULL : means + 7 * f + 3, live);
+    }
+    ls[0] = live[0];
+    ls[1] = live[1];
+    return rc;
 }
 
 /* Spread of frames idx[0..k) in each chart coordinate (mr_active's definition, kept as its

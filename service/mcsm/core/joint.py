@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from mcsm.core import kernel
+from mcsm.core import kernel, relin
 from mcsm.core.device import DeviceComponent
 from mcsm.core.storage import Component
 from mcsm.errors import NumericalError
@@ -144,11 +144,12 @@ def frame_args(comp: Component | DeviceComponent, ia: int, ib: int, prep: Prepar
 
 
 def apply(comp: Component | DeviceComponent, ia: int, ib: int, prep: Prepared, *, space: str,
-          gain: str, shrink: float | None, inflation: float, threads: int, spare: Any
-          ) -> Any:
+          gain: str, shrink: float | None, inflation: float, threads: int, spare: Any,
+          means: bool = False) -> Any:
     """Move every frame of ``comp``; returns the replaced buffer (the next update's spare).
     A component in device memory runs the same frame pass on the device
-    (:meth:`DeviceComponent.apply_joint`).
+    (:meth:`DeviceComponent.apply_joint`). ``means`` (a re-centring follows): a component in
+    host memory keeps its frames' means, taken in the same pass (:meth:`Component.pass_means`).
 
     Raises
     ------
@@ -165,12 +166,24 @@ def apply(comp: Component | DeviceComponent, ia: int, ib: int, prep: Prepared, *
     buf = comp.buffer
     out = spare if spare is not None and spare.shape == buf.shape else np.empty_like(buf)
     flags = comp.point_flags
-    codes = run_ranges(lambda lo, hi: kernel.joint_frames(args, buf, out, flags, lo, hi),
-                       len(comp), threads)
+    m = len(comp)
+    fm, big = (np.empty((m, 7)), np.empty(m)) if means else (None, None)
+    parts: dict[int, npt.NDArray[np.int64]] = {}
+
+    def frames(lo: int, hi: int) -> int:
+        if fm is None or big is None:
+            return kernel.joint_frames(args, buf, out, flags, lo, hi)
+        ls = parts[lo] = np.zeros(4, dtype=np.int64)
+        return relin.joint_frames_means(args, buf, out, flags, lo, hi, fm, big, ls)
+
+    codes = run_ranges(frames, m, threads)
     del keep
     for rc in codes:
         if rc == kernel.NONFINITE_GAIN:
             raise NumericalError("the update's gain is not finite")
         if rc != kernel.OK:
             raise NumericalError("the update pushed quaternions to zero or non-finite values")
-    return comp.swap_buffer(out)
+    old = comp.swap_buffer(out)
+    if fm is not None and big is not None:
+        comp.keep_means(fm, np.bitwise_or.reduce(list(parts.values())), big)
+    return old

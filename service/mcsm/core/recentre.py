@@ -41,6 +41,13 @@ from mcsm.errors import McsmError, NumericalError
 Array = npt.NDArray[np.float64]
 
 
+def recentring(smap: Relinearizable) -> bool:
+    """Whether the map re-centres after an accepted closure (its joint update then keeps the
+    frames' means it takes in its pass, for the solve to start from)."""
+    p = smap.policy
+    return p is not None and p.recentre and smap.factor_history is not None
+
+
 def recentre_component(smap: Relinearizable, cid: int) -> ComponentRelin:
     """Solve component ``cid`` (with the refused closures it now agrees with, under
     ``Policy.readmit``) and move every frame's samples so that their mean in the chart is the
@@ -100,28 +107,66 @@ def recentre_component(smap: Relinearizable, cid: int) -> ComponentRelin:
 
 def _shift(smap: Relinearizable, cid: int, alive: npt.NDArray[np.int64], rows: Array,
            flags: npt.NDArray[np.uint8], mean: Array, target: Array) -> None:
-    """Move the frames of variables ``alive`` from their means to ``target``: into the spare
-    buffer, swapped in after the checks (as the joint update), or into the host copy of a
-    component in device memory, uploaded."""
+    """Move the frames of variables ``alive`` from their means to ``target``: in place where
+    no value can come out non-finite (:func:`_shifts_finitely`), else into the spare buffer,
+    swapped in after the checks (as the joint update), or into the host copy of a component in
+    device memory, uploaded. The same bits every way."""
     comp = smap._comps[cid]
     hist = smap.factor_history
     assert hist is not None
     slot = np.array([comp.index[hist.frame_of[int(v)]] for v in alive], dtype=np.int64)
     moved = slot != 0  # the root's edge is the identity
-    slot = slot[moved]
-    out = rows
+    slot, mean, target = slot[moved], mean[moved], target[moved]
+    out, in_place = rows, False
     if isinstance(comp, Component):
         buf, spare = comp.buffer, smap._spare
-        out = spare if spare is not None and spare.shape == buf.shape else np.empty_like(buf)
+        in_place = _shifts_finitely(comp, slot, mean, target)
+        if in_place:
+            out = buf
+        else:
+            out = spare if spare is not None and spare.shape == buf.shape else \
+                np.empty_like(buf)
         rows = buf
-    # copied (a host component) or in place (a host copy), moved, canonicalised, checked
-    if relin.recentre(rows, out, len(comp), flags, slot, mean[moved], target[moved],
+    # copied or in place, moved, canonicalised, checked
+    if relin.recentre(rows, out, len(comp), flags, slot, mean, target,
                       runner(smap)) != relin.OK:
+        if in_place:  # excluded by _shifts_finitely: the component is partly moved
+            raise RuntimeError("mcsm internal error: a re-centring in place produced "
+                               "non-finite samples")
         raise NumericalError("the re-centring produced non-finite samples")
     if isinstance(comp, Component):
-        smap._spare = comp.swap_buffer(out)
+        if in_place:
+            comp.written()
+        else:
+            smap._spare = comp.swap_buffer(out)
     else:
         replace_rows(smap, cid, out)
+
+
+SHIFT_LIMIT = 1e300
+"""Translations, means and targets within this magnitude cannot overflow in a shift (their sum
+is at most 3e300)."""
+
+
+def _shifts_finitely(comp: Component, slot: npt.NDArray[np.int64], mean: Array,
+                     target: Array) -> bool:
+    """Whether the shift of frames ``slot`` may write in place (its writes save a pass over
+    the spare buffer): a failure would then leave the component partly moved, so only where
+    no value can come out non-finite. That holds when the update's pass kept the means of
+    this very buffer (nothing written since: every value finite, each frame's largest
+    translation magnitude known) and every translation, mean and target is within
+    :data:`SHIFT_LIMIT` (no sum overflows), and every target rotation's norm is in [0.5, 2]:
+    the means' rotations are unit (chordal means), the samples' too (the pass renormalised
+    them), so no rotation normalised on the way is near zero; canonicalisation only flips
+    signs, and points are pinned."""
+    kept = comp.pass_means()
+    if kept is None:
+        return False
+    norms = np.linalg.norm(target[:, 3:], axis=1)
+    return bool(np.all(kept[2][slot] <= SHIFT_LIMIT)
+                and np.all(np.abs(mean[:, :3]) <= SHIFT_LIMIT)
+                and np.all(np.abs(target[:, :3]) <= SHIFT_LIMIT)
+                and np.all((norms >= 0.5) & (norms <= 2.0)))
 
 
 def recentre(smap: Relinearizable, cids: list[int]) -> RelinReport:
@@ -139,4 +184,4 @@ def recentre(smap: Relinearizable, cids: list[int]) -> RelinReport:
     return RelinReport("recentre", tuple(comps), time.perf_counter() - t0)
 
 
-__all__ = ["recentre", "recentre_component"]
+__all__ = ["recentre", "recentre_component", "recentring"]

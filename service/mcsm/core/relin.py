@@ -65,6 +65,7 @@ for _name, _args, _res in (
         ("mr_active", (_P, _P, _L, _L, _P, _P), None),
         ("mr_means_active", (_P, _P, _L, _L, _P, _P, _P), None),
         ("mr_means_live", (_P, _P, _L, _L, _P, _P, _P), None),
+        ("mr_joint_frames_means", (_P, _P, _P, _P, _L, _L, _P, _P, _P), _I),
         ("mr_spread", (_P, _P, _L, _L, _P, _P), None),
         ("mr_transform", (_P, _I, _P, _P, _L, _P), None),
         ("mr_solve", (_P,), _I),
@@ -168,7 +169,25 @@ def means_active(buf: Array, idx: npt.NDArray[np.int64], point: npt.NDArray[np.u
 
     (run or _one)(one, len(i))
     ls = np.bitwise_or.reduce(list(parts.values())) if parts else np.zeros(4, dtype=np.int64)
-    return out, (int(ls[0]) if ls[2] else 0b111111, int(ls[1]) if ls[3] else 0b111)
+    return out, finish_masks(ls)
+
+
+def joint_frames_means(args: kernel.JointArgs, edges: Array, out: Array,
+                       point: npt.NDArray[np.uint8], lo: int, hi: int, means: Array,
+                       big: Array, ls: npt.NDArray[np.int64]) -> int:
+    """:func:`kernel.joint_frames` over frames [lo, hi) and, in the same pass, each output
+    frame's mean into ``means[f]`` (``(M, 7)``), the largest magnitude of its translations into
+    ``big[f]`` and the live chart coordinates of those other than frame 0 into ``ls`` (``(4,)``:
+    pose and point bits, pose and point seen; OR-ed in): the values of :func:`means_active`
+    over the output afterwards."""
+    return int(_lib.mr_joint_frames_means(ctypes.byref(args), ptr(edges), ptr(out), ptr(point),
+                                          lo, hi, ptr(means), ptr(big), ptr(ls)))
+
+
+def finish_masks(ls: npt.NDArray[np.int64]) -> tuple[int, int]:
+    """The masks of :func:`means_active` from the union ``ls`` of live bits and kinds seen (a
+    kind with no frame: every bit)."""
+    return int(ls[0]) if ls[2] else 0b111111, int(ls[1]) if ls[3] else 0b111
 
 
 def spread(buf: Array, idx: npt.NDArray[np.int64], point: npt.NDArray[np.uint8]) -> Array:
@@ -335,4 +354,4 @@ def solve(problem: Problem, *, max_iter: int = 20, tol: float = 1e-6,
 __all__ = ["Problem", "Solution", "SolveStats", "moments", "means", "recentre", "spread",
            "transform",
            "normals",
-           "solve", "means_active", "RELIN_VERSION"]
+           "solve", "means_active", "joint_frames_means", "finish_masks", "RELIN_VERSION"]

@@ -251,6 +251,17 @@ def runner(smap: Relinearizable) -> relin.Runner:
     return lambda fn, m: joint.run_ranges(fn, m, smap.threads)
 
 
+def _redraw_buffer(smap: Relinearizable, c: Component
+                   ) -> tuple[Array, npt.NDArray[np.uint8]]:
+    """A buffer of ``c``'s capacity holding a copy of its edges, for a redraw to write into:
+    the map's spare one where it fits (no fresh memory: its pages are mapped already)."""
+    spare = smap._spare
+    out = spare if spare is not None and spare.shape == c.buffer.shape else \
+        np.empty_like(c.buffer)
+    out[: len(c)] = c.rows
+    return out, c.point_flags
+
+
 def replace_rows(smap: Relinearizable, cid: int, rows: Array) -> None:
     """Component ``cid`` with the same frames and the edges ``rows`` (host, ``(M, 7, N)``):
     the only way this module writes one. A map on a device gets the rows uploaded (one
@@ -279,8 +290,12 @@ def _estimates(smap: Relinearizable, h: FactorHistory, cid: int, ids: npt.NDArra
     masks = None
     if len(alive):
         idx = np.array([c.index[h.frame_of[int(v)]] for v in ids[alive]], dtype=np.int64)
+        kept = c.pass_means() if isinstance(c, Component) and rows.base is c.buffer else None
         if len(idx) == len(rows) and np.array_equal(np.sort(idx), np.arange(len(rows))):
-            x[alive], masks = relin.means_active(rows, idx, flags[idx], runner(smap))
+            if kept is not None:  # taken by the update's pass over these rows
+                x[alive], masks = kept[0][idx], relin.finish_masks(kept[1])
+            else:
+                x[alive], masks = relin.means_active(rows, idx, flags[idx], runner(smap))
         else:
             x[alive] = relin.means(rows, idx, flags[idx])
     root = h.var_of.get(c.root)
@@ -407,20 +422,24 @@ def relinearize_component(smap: Relinearizable, cid: int, *, readmit_only: bool 
             alive = np.flatnonzero(kept)
             slot[alive] = [c.index[h.frame_of[int(v)]] for v in ids[alive]]
             slot[ids == h.var_of[c.root]] = -1
-            out, flags = (host[0].copy(), host[1]) if isinstance(c, Component) else host
+            m = len(c)
+            out, flags = _redraw_buffer(smap, c) if isinstance(c, Component) else host
             pol = smap.policy
             sol.redraw(out, slot, _key(h, cid), spread=1.0 if pol is None else pol.spread)
             st = sol.stats
-        m = len(c)
         if kernel.canonicalize_frames(out, flags, 1, m, False) != kernel.OK or \
-                not np.isfinite(out).all():
+                not np.isfinite(out[:m]).all():
             raise NumericalError("the relinearisation produced non-finite samples")
     except BaseException:
         sol.close()
         if undo is not None:  # a failure changes nothing: the admitted ones are pending again
             undo()
         raise
-    replace_rows(smap, cid, out)
+    if isinstance(c, Component):  # the old buffer, of the same capacity, is the next spare
+        smap._comps[cid] = Component.in_buffer(list(c.frames), c.point_list(), out)
+        smap._spare = c.buffer
+    else:
+        replace_rows(smap, cid, out)
     h.vars["est"][ids] = relin.transform(h.groups[cid].world, prob.x, prob.vkind)
     h.groups[cid].since = 0
     h.n_relin += 1
@@ -507,85 +526,6 @@ def relinearize(smap: Relinearizable, cids: list[int], trigger: str) -> RelinRep
     return RelinReport(trigger, tuple(comps), time.perf_counter() - t0)
 
 
-def marginalise(smap: Relinearizable) -> int:
-    """While the history is over its bound: marginalise the oldest quarter of the removed
-    variables of the component holding the oldest one into a dense prior on the variables
-    they touch (at their current estimates), until the history is at 3/4 of its bound or no
-    removed variable is left. Returns how many variables went."""
-    h = smap.factor_history
-    assert h is not None
-    target = h.bound_bytes * 3 // 4
-    gone = 0
-    while h.nbytes() > target:
-        removed = np.flatnonzero(h.vars["alive"] == 0)
-        if not len(removed):
-            break
-        cid = int(h.vars["group"][removed[0]])
-        mine = removed[h.vars["group"][removed] == cid]
-        s = mine[: max(1, (len(mine) + 3) // 4)]
-        root = h.var_of.get(smap._comps[cid].root)
-        if root is None or h.vars["kind"][root] != 0:
-            break  # a component rooted at a point anchors no prior: over the bound for now
-        try:
-            _marginalise_set(smap, h, cid, s)
-        except McsmError:  # never raised out of an applied update; tried again next time
-            break
-        gone += len(s)
-    _trim_heap()
-    return gone
-
-
-def _trim_heap() -> None:
-    """Give the C heap's free pages back to the system after a marginalisation (glibc keeps
-    the solve's freed blocks otherwise, and a bounded map would not stay a bounded process)."""
-    if _LIBC is not None:
-        _LIBC.malloc_trim(0)
-
-
-def _libc() -> Any:
-    import ctypes
-    import ctypes.util
-    import sys
-
-    if not sys.platform.startswith("linux"):
-        return None
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        libc.malloc_trim.argtypes = [ctypes.c_size_t]
-        return libc
-    except (OSError, AttributeError):  # not glibc
-        return None
-
-
-_LIBC = _libc()
-
-
-def _marginalise_set(smap: Relinearizable, h: FactorHistory, cid: int,
-                     s: npt.NDArray[np.int64]) -> None:
-    in_s = np.zeros(h.vars.n, dtype=bool)
-    in_s[s] = True
-    fv = h.factors["vars"]
-    fmask = in_s[fv[:, 0]] | in_s[fv[:, 1]]
-    priors = [p for p in h.priors if np.any(in_s[p.vars])]
-    root = h.var_of[smap._comps[cid].root]
-    touched = [fv[fmask].ravel(), np.array([root])] + [p.vars for p in priors]
-    ids = np.unique(np.concatenate(touched).astype(np.int64))
-    kept = (~in_s[ids]).astype(np.uint8)
-    prob = _problem(smap, h, cid, ids, fmask, priors, kept)
-    border = ids[(kept != 0) & (ids != root)]
-    if len(border):
-        with relin.solve(prob, max_iter=0) as sol:
-            r, d = sol.marginal()
-        live = np.any(r != 0.0, axis=1) | (d != 0.0)
-        if np.any(live):
-            sel = (kept != 0) & (ids != root)
-            h.priors.append(Prior(np.concatenate([[root], border]).astype(np.int32),
-                                  np.ascontiguousarray(prob.x[sel]),
-                                  np.ascontiguousarray(r[live]), np.ascontiguousarray(d[live])))
-    h._delete_vars(in_s)
-    h.n_marginalised += len(s)
-
-
 __all__ = ["Policy", "RECOMMENDED", "REPAIR_ONLY", "RelinReport", "ComponentRelin", "relinearize",
-           "relinearize_component", "marginalise", "why_not", "estimates", "calibrating",
+           "relinearize_component", "why_not", "estimates", "calibrating",
            "DEFAULT_HISTORY_BYTES", "REGATE_WINDOW", "TRIM_QUANTILE", "CALIBRATE_QUANTILE"]

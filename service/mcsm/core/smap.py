@@ -36,8 +36,9 @@ from mcsm.core.forest import (
     check_frame_name,
 )
 from mcsm.core.gate import chi2_quantile, lower_quantile, median
+from mcsm.core.marginalise import marginalise
 from mcsm.core.paper import paper_update, paper_update_tangent
-from mcsm.core.recentre import recentre
+from mcsm.core.recentre import recentre, recentring
 from mcsm.core.relinearize import (
     CALIBRATE_QUANTILE,
     DEFAULT_HISTORY_BYTES,
@@ -45,7 +46,6 @@ from mcsm.core.relinearize import (
     Policy,
     RelinReport,
     calibrating,
-    marginalise,
     relinearize,
     why_not,
 )
@@ -544,8 +544,8 @@ class StochasticMap(Forest):
             return UpdateResult("loop_closure", a, (), verdict, report)
         inflation, nis_avg = joint.inflation_factor(prep, self.inflation, self._nis_avg)
         self._spare = joint.apply(c, ia, ib, prep, space=self.space, gain=self.gain,
-                                  shrink=self.shrink, inflation=inflation,
-                                  threads=self.threads, spare=self._spare)
+                                  shrink=self.shrink, inflation=inflation, threads=self.threads,
+                                  spare=self._spare, means=recentring(self))
         self._nis_avg = nis_avg
         return UpdateResult("loop_closure", c.root, (), verdict, report)
 

@@ -46,7 +46,7 @@ def identity_rows(n_samples: int) -> Array:
 class Component:
     """The frames of one component, root first, their point flags and their edges."""
 
-    __slots__ = ("frames", "index", "n_samples", "_buf", "_point", "_m")
+    __slots__ = ("frames", "index", "n_samples", "_buf", "_point", "_m", "_means")
 
     def __init__(self, frames: list[str], is_point: list[bool], rows: Array) -> None:
         """``rows``: ``(M, 7, N)`` edges in the rows layout (taken, not copied, when it is
@@ -61,6 +61,21 @@ class Component:
         self._point = np.zeros(self._buf.shape[0], dtype=np.uint8)
         self._point[:m] = np.asarray(is_point, dtype=bool)
         self._m = m
+        self._means: tuple[Array, npt.NDArray[np.int64], Array] | None = None
+
+    @classmethod
+    def in_buffer(cls, frames: list[str], is_point: list[bool], buf: Array) -> Component:
+        """The component of ``frames`` whose edges are the first rows of ``buf`` ``(capacity,
+        7, N)`` (taken, not copied: a C-contiguous float64 buffer)."""
+        m = len(frames)
+        if (buf.ndim != 3 or buf.shape[0] < m or buf.dtype != np.float64
+                or not buf.flags.c_contiguous):
+            raise ValueError("buf must be a C-contiguous float64 buffer of at least M frames")
+        c = cls(frames, is_point, buf[:m])
+        point = np.zeros(buf.shape[0], dtype=np.uint8)
+        point[:m] = c._point[:m]
+        c._buf, c._point = buf, point
+        return c
 
     # ------------------------------------------------------------------ reading
     @property
@@ -104,9 +119,28 @@ class Component:
         """All edges as ``(M, N, 7)`` (a copy in the API's layout)."""
         return from_rows(self._buf[: self._m])
 
+    def pass_means(self) -> tuple[Array, npt.NDArray[np.int64], Array] | None:
+        """The frames' means ``(M, 7)``, live chart coordinates and largest translation
+        magnitudes ``(M,)`` that the joint update's pass took of this buffer
+        (:func:`mcsm.core.relin.joint_frames_means`), while no change has been made since;
+        else None."""
+        return self._means
+
     # ------------------------------------------------------------------ changing
+    def keep_means(self, means: Array, ls: npt.NDArray[np.int64], big: Array) -> None:
+        """Keep what :meth:`pass_means` answers until the next change (every changing method
+        forgets it)."""
+        if means.shape != (self._m, 7) or big.shape != (self._m,):
+            raise ValueError("one mean per frame")
+        self._means = (means, ls, big)
+
+    def written(self) -> None:
+        """The buffer was written in place (a re-centring's shift): forget the kept means."""
+        self._means = None
+
     def append(self, frame: str, point: bool, rows: Array) -> None:
         """Add one frame with edge ``rows`` ``(7, N)``; O(N) amortised."""
+        self._means = None
         if self._m == self._buf.shape[0]:
             cap = max(4, 2 * self._buf.shape[0])
             buf = np.empty((cap, 7, self.n_samples))
@@ -122,6 +156,7 @@ class Component:
 
     def extend(self, frames: list[str], is_point: list[bool], rows: Array) -> None:
         """Add several frames (a join); one copy of the new frames."""
+        self._means = None
         k = len(frames)
         need = self._m + k
         if need > self._buf.shape[0]:
@@ -142,6 +177,7 @@ class Component:
         """Drop frame ``i`` (not the root); other frames' bits are unchanged."""
         if i == 0:
             raise ValueError("re-root before deleting the root")
+        self._means = None
         self._buf[i: self._m - 1] = self._buf[i + 1: self._m]
         self._point[i: self._m - 1] = self._point[i + 1: self._m]
         self._point[self._m - 1] = 0
@@ -154,7 +190,7 @@ class Component:
         buffer (the joint update writes into a spare one and swaps after its checks)."""
         if buf.shape != self._buf.shape:
             raise ValueError("buffer shapes differ")
-        old, self._buf = self._buf, buf
+        old, self._buf, self._means = self._buf, buf, None
         return old
 
     def copy(self) -> Component:
