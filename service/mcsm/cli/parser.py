@@ -37,11 +37,14 @@ log = logging.getLogger("mcsm")
 
 
 
+DESCRIPTION = ("The Monte Carlo stochastic map server: serve a map over Zenoh; replay, inspect,\n"
+               "plot and export its recordings; bridge ROS 2 and Foxglove.")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from mcsm.serve.connect import add_connection_args
 
-    p = argparse.ArgumentParser(prog="mcsm", description=__doc__.split("\n")[0] if __doc__
-                                else None, epilog=EXIT_CODES_HELP,
+    p = argparse.ArgumentParser(prog="mcsm", description=DESCRIPTION, epilog=EXIT_CODES_HELP,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--version", action="version", version=_version_text())
     sub = p.add_subparsers(dest="command", required=True)

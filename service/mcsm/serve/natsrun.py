@@ -277,7 +277,10 @@ def main(argv: list[str]) -> int:
     """``mcsm nats-cluster`` on its own argument list."""
     import argparse
 
-    ap = argparse.ArgumentParser(prog="mcsm nats-cluster", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(
+        prog="mcsm nats-cluster",
+        description="Run a NATS JetStream cluster on this machine: the replicated log of a "
+                    "fleet's maps.")
     add_arguments(ap)
     return run(ap.parse_args(argv))
 

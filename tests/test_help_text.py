@@ -1,0 +1,35 @@
+"""Every ``--help`` the two commands print is text for a user: a description at the top, no
+reStructuredText left over from a docstring (the top-level description once was a docstring's
+first line, cut mid-sentence, with its markup)."""
+
+from __future__ import annotations
+
+import argparse
+import re
+
+import pytest
+from mcsm.cli.parser import build_parser as mcsm_parser
+from mcsm_client.cli import build_parser as client_parser
+
+MARKUP = re.compile(r"``|:(?:func|mod|class|data|meth|attr):`")
+
+
+def _helps(parser: argparse.ArgumentParser, name: str) -> list[tuple[str, str]]:
+    """(name, help text) of ``parser`` and every subcommand under it."""
+    out = [(name, parser.format_help())]
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub, subparser in action.choices.items():
+                out += _helps(subparser, f"{name} {sub}")
+    return out
+
+
+@pytest.mark.parametrize("make, name", [(mcsm_parser, "mcsm"), (client_parser, "mcsm-client")])
+def test_every_help_is_plain_text_with_a_description(make, name) -> None:  # type: ignore[no-untyped-def]
+    helps = _helps(make(), name)
+    assert len(helps) > 10  # the subcommands were found
+    for cmd, text in helps:
+        assert not MARKUP.search(text), f"{cmd} --help shows markup: {MARKUP.search(text)}"
+    top = helps[0][1].split("\n\n")
+    description = next(part for part in top[1:] if part.strip())
+    assert description.rstrip().endswith("."), f"{name}'s description is cut: {description!r}"
