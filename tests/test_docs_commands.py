@@ -23,14 +23,39 @@ from mcsm_client.cli import build_parser as client_parser
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = sorted([ROOT / "README.md", ROOT / "CONTRIBUTING.md", *ROOT.glob("docs/**/*.md"),
                *ROOT.glob("deploy/**/*.md")])
-BLOCK = re.compile(r"^ {0,3}```(?:sh|bash|console|shell)\n(.*?)^ {0,3}```", re.M | re.S)
+SHELL = ("", "sh", "bash", "console", "shell", "text")
 COMMAND = re.compile(r"^(?:\w+=\S+\s+)*(?:\S*/)?(?:nice -n \d+ )?(mcsm|mcsm-client)\s+(.*)$")
+
+
+def shell_blocks(text: str) -> list[str]:
+    """The bodies of ``text``'s fenced blocks tagged as shell, or not tagged."""
+    blocks: list[str] = []
+    body: list[str] | None = None
+    fence = ""
+    for line in text.splitlines():
+        stripped = line.strip()
+        if fence.endswith("!"):  # inside a block of another language
+            if stripped == fence[:3]:
+                fence = ""
+        elif body is not None:
+            if stripped == fence:
+                blocks.append("\n".join(body))
+                body, fence = None, ""
+            else:
+                body.append(line)
+        elif stripped.startswith(("```", "~~~")):
+            fence, lang = stripped[:3], stripped[3:].strip()
+            if lang in SHELL:
+                body = []
+            else:
+                fence += "!"
+    return blocks
 
 
 def commands(text: str) -> list[tuple[str, list[str]]]:
     """(program, argv) of every command line in ``text``'s shell blocks."""
     out = []
-    for block in BLOCK.findall(text):
+    for block in shell_blocks(text):
         for line in block.replace("\\\n", " ").splitlines():
             line = line.strip().removeprefix("$ ")
             for part in re.split(r"\s*(?:&&|\|\||;|\|)\s*", line):
@@ -63,7 +88,8 @@ def test_the_commands_are_found_and_a_bad_flag_fails() -> None:
     found = [c for doc in DOCS for c in commands(doc.read_text())]
     assert len(found) >= 40
     assert {p for p, _ in found} == {"mcsm", "mcsm-client"}
-    text = "```sh\nmcsm replay x.mcap --no-such-flag && mcsm-client info  # note\n```\n"
+    text = ("```python\nmcsm = 1\n```\nmcsm prose\n"
+            "```sh\nmcsm replay x.mcap --no-such-flag && mcsm-client info  # note\n```\n")
     (program, argv), (program2, argv2) = commands(text)
     assert (program, argv, program2, argv2) == ("mcsm", ["replay", "x.mcap", "--no-such-flag"],
                                                 "mcsm-client", ["info"])
