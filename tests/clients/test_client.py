@@ -439,6 +439,16 @@ def test_server_flags_before_or_after_serve() -> None:
         "serve", "--zenoh-config=x.json5", "--map", "a"]
     assert flags_after_command(["replay", "f.mcap"], "serve") == ["replay", "f.mcap"]
     assert flags_after_command(["-v", "serve"], "serve") == ["-v", "serve"]
+    # every connection flag `mcsm serve` takes may come first (README: "before or after")
+    from mcsm.cli.parser import build_parser
+
+    before = build_parser().parse_args(flags_after_command(
+        ["--connect", "tcp/127.0.0.1:2", "--listen", "tcp/127.0.0.1:1", "--map", "a",
+         "--prefix", "p", "--zenoh-config", "z.json5", "serve"], "serve"))
+    after = build_parser().parse_args(
+        ["serve", "--connect", "tcp/127.0.0.1:2", "--listen", "tcp/127.0.0.1:1", "--map", "a",
+         "--prefix", "p", "--zenoh-config", "z.json5"])
+    assert vars(before) == vars(after)
 
 
 def test_slow_server_gives_timeout_after_the_full_deadline() -> None:

@@ -106,7 +106,7 @@ def fill_connection_defaults(args: argparse.Namespace,
             setattr(args, k, v)
 
 
-SERVER_FLAGS = ("--listen", "--map", "--prefix", "--zenoh-config")
+SERVER_FLAGS = ("--listen", "--connect", "--map", "--prefix", "--zenoh-config")
 
 
 def flags_after_command(argv: list[str], command: str,
