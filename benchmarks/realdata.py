@@ -31,6 +31,8 @@ Usage::
     .venv/bin/python benchmarks/realdata.py --list                  # configurations, availability
     .venv/bin/python benchmarks/realdata.py --datasets victoria --reference trimmed
         # errors against the batch optimum without the inputs that are outliers at it
+    .venv/bin/python benchmarks/realdata.py --datasets victoria --reference huber
+        # errors against the batch optimum with a Huber kernel on sightings and closures
 
 Results: ``benchmarks/results/realdata/`` (``--out``).
 """
@@ -167,11 +169,13 @@ def make_hooks(config: dict[str, Any], problem: Any, seed: int) -> list[Any]:
 
 
 # ---------------------------------------------------------------------------------------------
-def reference(problem: Any, log: Any, tuned: bool = True, trimmed: bool = False
+def reference(problem: Any, log: Any, tuned: bool = True, kind: str = "least-squares"
               ) -> dict[str, Any]:
     """iSAM2 (defaults, tuned; file values; timed with the joint marginal) and batch LM (with
-    ``trimmed``, the reference is LM without the inputs beyond the trim quantile at its own
-    optimum, ``experiments.realdata_gtsam.trimmed_lm``; the least-squares one is ``lm_ls``)."""
+    ``kind`` "trimmed", the reference is LM without the inputs beyond the trim quantile at its
+    own optimum, ``experiments.realdata_gtsam.trimmed_lm``; with "huber", LM with a Huber
+    kernel on the sightings and closures, ``huber_lm``; the least-squares one is then
+    ``lm_ls``)."""
     from experiments import realdata_gtsam as rg
 
     out: dict[str, Any] = {"snaps": {}, "snaps_tuned": {}, "snaps_cpp": {}}
@@ -187,12 +191,17 @@ def reference(problem: Any, log: Any, tuned: bool = True, trimmed: bool = False
     out["graph"] = graph
     log(f"    LM from iSAM2: {out['lm_s']:.1f} s CPU, error {graph.error(out['isam'].estimate):.1f}"
         f" -> {graph.error(out['lm']):.1f}")
-    if trimmed:
+    if kind == "trimmed":
         out["lm_ls"] = out["lm"]
         out["lm"], out["left_out"], s = rg.trimmed_lm(problem, graph, out["lm_ls"])
         out["lm_s"] += s
         log(f"    trimmed LM: {len(out['left_out'])} inputs left out (beyond the 0.999 quantile "
             f"at the optimum), {s:.1f} s CPU")
+    elif kind == "huber":
+        out["lm_ls"] = out["lm"]
+        out["lm"], s = rg.huber_lm(problem, out["lm_ls"])
+        out["lm_s"] += s
+        log(f"    Huber LM (k = {rg.HUBER_K}): {s:.1f} s CPU")
     if problem.bounded:  # the same structure with C++ factors: iSAM2's time without callbacks
         out["isam_cpp"] = rg.run_isam2(problem, cpp_points=True, error_fn=keep(out["snaps_cpp"]))
         log(f"    iSAM2 defaults, C++ bearing-range factors: {out['isam_cpp'].total_s:.1f} s CPU")
@@ -246,8 +255,7 @@ def run_dataset(name: str, args: argparse.Namespace, configs: list[dict[str, Any
     problem = rd.load(name).prefix(steps)
     n = args.n_samples or (100 if args.quick else DEFAULT_N[name])
     log(f"{name}: {problem.counts()}, noise: {problem.noise}; N = {n}, seeds {args.seeds}")
-    trimmed = args.reference == "trimmed"
-    ref = reference(problem, log, tuned=not args.no_tuned, trimmed=trimmed)
+    ref = reference(problem, log, tuned=not args.no_tuned, kind=args.reference)
     scorer = Scorer(problem, ref["lm"])
     rows: list[dict[str, Any]] = []
     curves: list[tuple[str, str, int, int, float]] = []
@@ -260,12 +268,13 @@ def run_dataset(name: str, args: argparse.Namespace, configs: list[dict[str, Any
     nees_lm = np.nan
     if problem.truth is not None and not args.quick:
         nees_lm = gtsam_nees(problem, scorer, ref)
-    if trimmed:
-        n_out = len(ref["left_out"])
-        rows.append(row(name, "GTSAM batch LM, trimmed (reference)", final_m=0.0, ate_m=lm_ate,
-                        total_s=ref["lm_s"], nees=nees_lm,
-                        note=f"without the {n_out} sightings and closures beyond the 0.999 "
-                             f"quantile at its optimum; from iSAM2's estimate"))
+    if args.reference != "least-squares":
+        note = (f"without the {len(ref['left_out'])} sightings and closures beyond the 0.999 "
+                f"quantile at its optimum" if args.reference == "trimmed" else
+                f"Huber {rg.HUBER_K} on the sightings and closures")
+        rows.append(row(name, f"GTSAM batch LM, {args.reference} (reference)", final_m=0.0,
+                        ate_m=lm_ate, total_s=ref["lm_s"], nees=nees_lm,
+                        note=f"{note}; from the least-squares optimum"))
         ls = ref["lm_ls"]
         rows.append(row(name, "GTSAM batch LM, least squares (every input)",
                         final_m=scorer.values_error(ls, len(problem.steps)),
@@ -480,11 +489,12 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     ap.add_argument("--tag", default="", help="suffix of the output files")
     ap.add_argument("--no-plot", action="store_true", help="skip the PNG")
     ap.add_argument("--no-tuned", action="store_true", help="skip the tuned iSAM2 row")
-    ap.add_argument("--reference", choices=("least-squares", "trimmed"),
+    ap.add_argument("--reference", choices=("least-squares", "trimmed", "huber"),
                     default="least-squares",
                     help="the optimum errors are measured against: batch LM of every input "
-                         "(default), or without the inputs beyond the 0.999 chi-square "
-                         "quantile at its own optimum, re-solved until that set is stable")
+                         "(default); trimmed: without the inputs beyond the 0.999 chi-square "
+                         "quantile at its own optimum, re-solved until that set is stable; "
+                         "huber: with a Huber kernel (1.345) on the sightings and closures")
     ap.add_argument("--replot", action="store_true", help="redraw the PNGs from the CSVs")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "realdata")
     args = ap.parse_args(argv)

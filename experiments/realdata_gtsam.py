@@ -34,8 +34,12 @@ _PERM = [3, 4, 5, 0, 1, 2]
 
 
 def edge_factor(e: Edge, dim: int, mean: Array | None = None,
-                cov: Array | None = None, cpp_points: bool = False) -> gtsam.NonlinearFactor:
+                cov: Array | None = None, cpp_points: bool = False,
+                kernel: Any = None) -> gtsam.NonlinearFactor:
     """The factor of one edge (``mean``/``cov`` replace the edge's own when given).
+
+    ``kernel``: a robust kernel (``gtsam.noiseModel.mEstimator``) on a sighting's or loop
+    closure's whitened residual; odometry stays least squares.
 
     ``cpp_points``: a sighting becomes GTSAM's C++ ``BearingRangeFactor2D`` (bearing and range
     of the Cartesian reading, sigmas ``sqrt(c11)/range`` and ``sqrt(c11)``, the first-order
@@ -50,12 +54,15 @@ def edge_factor(e: Edge, dim: int, mean: Array | None = None,
         return gtsam.BearingRangeFactor2D(
             X(e.i), L(e.j), gtsam.Rot2(float(np.arctan2(z[1], z[0]))), rng,
             gtsam.noiseModel.Diagonal.Sigmas(np.array([sigma / max(rng, 1e-3), sigma])))
+    robust = kernel is not None and e.kind != "odometry"
     if e.is_point:
-        return point_factor_2d(X(e.i), L(e.j), z, c)
+        return point_factor_2d(X(e.i), L(e.j), z, c, kernel if robust else None)
+    noise = gaussian(c if dim == 2 else np.asarray(c)[np.ix_(_PERM, _PERM)])
+    if robust:
+        noise = gtsam.noiseModel.Robust.Create(kernel, noise)
     if dim == 2:
-        return gtsam.BetweenFactorPose2(X(e.i), X(e.j), gtsam.Pose2(*z), gaussian(c))
-    return gtsam.BetweenFactorPose3(X(e.i), X(e.j), pose3_from_row(z),
-                                    gaussian(np.asarray(c)[np.ix_(_PERM, _PERM)]))
+        return gtsam.BetweenFactorPose2(X(e.i), X(e.j), gtsam.Pose2(*z), noise)
+    return gtsam.BetweenFactorPose3(X(e.i), X(e.j), pose3_from_row(z), noise)
 
 
 def anchor_prior(problem: Problem) -> gtsam.NonlinearFactor:
@@ -72,10 +79,11 @@ class Builder:
     """Factors and initial values step by step (initial guesses from a running estimate)."""
 
     def __init__(self, problem: Problem, means: list[Array] | None = None,
-                 cpp_points: bool = False) -> None:
+                 cpp_points: bool = False, kernel: Any = None) -> None:
         self.p = problem
         self.means = means
         self.cpp_points = cpp_points
+        self.kernel = kernel
         self.k = 0  # edge counter
         self.guess: dict[int, Any] = {}  # pose id -> gtsam pose (latest estimate)
         self.landmarks: set[int] = set()
@@ -93,7 +101,8 @@ class Builder:
         for e in edges:
             z = e.mean if self.means is None else self.means[self.k]
             self.k += 1
-            graph.add(edge_factor(e, self.p.dim, z, cpp_points=self.cpp_points))
+            graph.add(edge_factor(e, self.p.dim, z, cpp_points=self.cpp_points,
+                                  kernel=self.kernel))
             if e.kind == "odometry":
                 if self.p.dim == 2:
                     zz = z if e.j == pose else planar_inverse(z)
@@ -114,10 +123,11 @@ class Builder:
         return graph, values
 
 
-def whole_graph(problem: Problem, means: list[Array] | None = None
+def whole_graph(problem: Problem, means: list[Array] | None = None, kernel: Any = None
                 ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
-    """All factors and a dead-reckoning initial estimate."""
-    b = Builder(problem, means)
+    """All factors and a dead-reckoning initial estimate (``kernel``: robust sightings and
+    loop closures, :func:`edge_factor`)."""
+    b = Builder(problem, means, kernel=kernel)
     graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
     for k in range(len(problem.steps)):
         g, v = b.step(k)
@@ -254,6 +264,21 @@ def trimmed_lm(problem: Problem, graph: gtsam.NonlinearFactorGraph, init: gtsam.
         values, s = batch_lm(kept, values)
         secs += s
     return values, out, secs
+
+
+HUBER_K = 1.345
+"""The Huber kernel's threshold on the whitened residual (GTSAM's and the usual 95 % efficiency
+value)."""
+
+
+def huber_lm(problem: Problem, init: gtsam.Values, k: float = HUBER_K
+             ) -> tuple[gtsam.Values, float]:
+    """Batch LM with a Huber kernel on every sighting and loop closure (odometry least
+    squares), from ``init`` (the least-squares optimum): a robust smoother's optimum, where a
+    sighting far off its landmark's other sightings counts linearly, not quadratically. The
+    optimum and the CPU seconds."""
+    graph, _ = whole_graph(problem, kernel=gtsam.noiseModel.mEstimator.Huber.Create(k))
+    return batch_lm(graph, init)
 
 
 def marginal_covariances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,

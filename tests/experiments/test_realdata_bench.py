@@ -10,6 +10,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -205,13 +206,10 @@ def test_recentring_keeps_w10000_at_the_floor_of_its_inputs(
     assert rc["map"] < 0.5 * plain["map"]
 
 
-def test_trimmed_reference_leaves_out_a_wrong_sighting(problems: dict[str, rd.Problem]) -> None:
-    """``--reference trimmed``: batch LM without the inputs beyond the 0.999 quantile at its
-    own optimum. A re-sighting moved 3 m on Victoria Park's first 400 steps is left out (and
-    nothing else), and the result is batch LM of the graph without it."""
+def _moved_sighting(problems: dict[str, rd.Problem]) -> tuple[Any, int, Any, Any]:
+    """Victoria Park's first 400 steps with one re-sighting moved 3 m: the problem, that edge's
+    index, its graph and its least-squares optimum."""
     import dataclasses
-
-    import gtsam
 
     from experiments import realdata_gtsam as rg
 
@@ -234,36 +232,80 @@ def test_trimmed_reference_leaves_out_a_wrong_sighting(problems: dict[str, rd.Pr
     bad = dataclasses.replace(p, steps=steps)
     graph, init = rg.whole_graph(bad)
     ls, _ = rg.batch_lm(graph, init)
-    trimmed, left_out, secs = rg.trimmed_lm(bad, graph, ls)
-    assert left_out == [target] and secs > 0
+    return bad, target, graph, ls
+
+
+def _without(graph: Any, index: int) -> Any:
+    import gtsam
+
     kept = gtsam.NonlinearFactorGraph()
     for i in range(graph.size()):
-        if i != target + 1:
+        if i != index:
             kept.push_back(graph.at(i))
-    ref, _ = rg.batch_lm(kept, ls)
+    return kept
+
+
+def test_trimmed_reference_leaves_out_a_wrong_sighting(problems: dict[str, rd.Problem]) -> None:
+    """``--reference trimmed``: batch LM without the inputs beyond the 0.999 quantile at its
+    own optimum. A re-sighting moved 3 m on Victoria Park's first 400 steps is left out (and
+    nothing else), and the result is batch LM of the graph without it."""
+    import gtsam
+
+    from experiments import realdata_gtsam as rg
+
+    bad, target, graph, ls = _moved_sighting(problems)
+    trimmed, left_out, secs = rg.trimmed_lm(bad, graph, ls)
+    assert left_out == [target] and secs > 0
+    ref, _ = rg.batch_lm(_without(graph, target + 1), ls)
     lm = bad.edges()[target].j
     a, b, c = (np.asarray(v.atPoint2(gtsam.symbol_shorthand.L(lm))) for v in (trimmed, ref, ls))
     np.testing.assert_allclose(a, b, atol=1e-6)
     assert np.linalg.norm(c - b) > 10 * np.linalg.norm(a - b) + 0.05  # LS is pulled away
     with pytest.raises(ValueError):
-        rg.trimmed_lm(p.prefix(300), graph, ls)  # another problem's graph
+        rg.trimmed_lm(bad.prefix(300), graph, ls)  # another problem's graph
 
 
-def test_benchmark_with_the_trimmed_reference(tmp_path) -> None:
-    """``--reference trimmed`` scores every row against the trimmed optimum and adds the
+def test_huber_reference_discounts_a_wrong_sighting(problems: dict[str, rd.Problem]) -> None:
+    """``--reference huber``: batch LM with a Huber kernel on the sightings (odometry least
+    squares). On Victoria Park's first 400 steps with a re-sighting moved 3 m (4.3 sigma at the
+    least-squares optimum) its result has a lower Huber cost than the least-squares optimum
+    and than the optimum without that sighting, and fits the moved sighting less than the
+    least-squares optimum does. (It is not the optimum without the sighting: the kernel
+    weighs every sighting beyond 1.345 sigma linearly.)"""
+    import gtsam
+
+    from experiments import realdata_gtsam as rg
+
+    bad, target, graph, ls = _moved_sighting(problems)
+    huber, secs = rg.huber_lm(bad, ls)
+    assert secs > 0
+    ref, _ = rg.batch_lm(_without(graph, target + 1), ls)
+    robust, _ = rg.whole_graph(bad, kernel=gtsam.noiseModel.mEstimator.Huber.Create(rg.HUBER_K))
+    assert robust.size() == graph.size()
+    assert robust.error(huber) < min(robust.error(ls), robust.error(ref)) - 1e-3
+    moved = target + 1
+    assert graph.at(moved).error(huber) > graph.at(moved).error(ls) + 0.5  # listened to less
+    assert robust.at(moved).error(ls) < graph.at(moved).error(ls)  # the kernel acts on it
+    odo = 1 + next(k for k, e in enumerate(bad.edges()) if e.kind == "odometry")
+    assert robust.at(odo).error(ls) == pytest.approx(graph.at(odo).error(ls))
+
+
+@pytest.mark.parametrize("kind", ["trimmed", "huber"])
+def test_benchmark_with_another_reference(tmp_path, kind: str) -> None:
+    """``--reference trimmed|huber`` scores every row against that optimum and adds the
     least-squares one as a row of its own."""
     root = Path(__file__).resolve().parents[2]
     env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1",
            "PYTHONPATH": str(root)}
     cmd = [sys.executable, str(root / "benchmarks" / "realdata.py"), "--datasets", "victoria",
            "--max-steps", "400", "--n-samples", "40", "--seeds", "3", "--out", str(tmp_path),
-           "--no-plot", "--no-tuned", "--configs", "mcsm defaults", "--reference", "trimmed"]
+           "--no-plot", "--no-tuned", "--configs", "mcsm defaults", "--reference", kind]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, env=env)
     assert proc.returncode == 0, proc.stderr[-2000:]
     with open(tmp_path / "victoria_rows.csv") as f:
         by = {r["estimator"]: r for r in csv.DictReader(f)}
-    assert float(by["GTSAM batch LM, trimmed (reference)"]["final_m"]) == 0.0
+    assert float(by[f"GTSAM batch LM, {kind} (reference)"]["final_m"]) == 0.0
     ls = float(by["GTSAM batch LM, least squares (every input)"]["final_m"])
     assert np.isfinite(ls) and ls >= 0.0
     assert np.isfinite(float(by["mcsm defaults"]["final_m"]))
-    assert "trimmed LM:" in proc.stdout
+    assert ("trimmed LM:" if kind == "trimmed" else "Huber LM (k = 1.345)") in proc.stdout
