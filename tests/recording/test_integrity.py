@@ -388,7 +388,21 @@ def test_cat_prints_inputs_as_json_lines(tmp_path: Path,
     assert np.array_equal(np.asarray(full["samples"]["samples"]), first.samples)
     assert mcsm_main(["cat", str(path)]) == EXIT_OK
     text = capsys.readouterr().out.splitlines()
-    assert len(text) == 6 and text[0].startswith(f"default seq 1 update {first.a} -> {first.b}")
+    heads = [t for t in text if not t.startswith(" ")]
+    assert len(heads) == 6 and heads[0].startswith(f"default seq 1 update {first.a} -> {first.b}")
+    # the text shows what the docs promise: the mean on the input's line, the 6x6 tangent
+    # covariance on the 6 indented lines under it
+    assert text[1].startswith("  cov (tx ty tz rx ry rz)") and len(text) == 6 * 7
+    cov = np.array([[float(v) for v in t[26:].split()] for t in text[1:7]])
+    assert np.allclose(cov, s["cov"], rtol=1e-3)
+    mean = text[0].split("mean [")[1].split("]")[0].split()
+    assert np.allclose([float(v) for v in mean], s["mean"], rtol=1e-5, atol=1e-12)
+    # --samples: every sample, exactly, on the indented lines
+    assert mcsm_main(["cat", str(path), "--samples"]) == EXIT_OK
+    text = capsys.readouterr().out.splitlines()
+    assert len(text) == 6 * (N + 1)
+    rows = np.array([[float(v) for v in t.split()] for t in text[1:N + 1]])
+    assert np.array_equal(rows, first.samples)
 
 
 @pytest.mark.parametrize("script", ["mcsm", "mcsm-client"])
@@ -552,7 +566,7 @@ def test_cat_shows_removes_imports_retracts_and_reinstates(
     assert imp["root"] == "q0" and imp["frames"] == ["q0", "q1", "q2"]
     assert len(imp["edges"]) == 2 and np.asarray(imp["edges"][1]["cov"]).shape == (6, 6)
     assert mcsm_main(["cat", str(path)]) == EXIT_OK
-    text = capsys.readouterr().out.splitlines()
+    text = [t for t in capsys.readouterr().out.splitlines() if not t.startswith(" ")]
     assert text[1].startswith("default seq 2 remove b") and "3 frames" in text[2]
     assert text[4].startswith("default seq 5 retract of u2")
     assert text[5].startswith("default seq 6 reinstate of u2")

@@ -396,17 +396,23 @@ def _cat_file(args: argparse.Namespace, path: Path, reader: Any,
 
 
 def _cat_text(line: dict[str, Any]) -> str:
+    """An input's line; an AT's covariance (or with --samples its samples) on indented lines."""
     head = f"{line['map']} seq {line['seq']} {line['op']}"
     if "error" in line:
         return f"{head} undecodable: {line['error']}"
+    rows: list[str] = []
     if "samples" in line:
         s = line["samples"]
-        mean = " ".join(f"{v:.4g}" for v in s.get("mean", []))
+        mean = " ".join(f"{v:.6g}" for v in s.get("mean", []))
         body = f"{line['a']} -> {line['b']} N={s['n']}" + (f" mean [{mean}]" if mean else "")
+        labels = "tx ty tz rx ry rz" if len(s.get("mean", [])) == 7 else "x y z"
+        rows = [f"  {'cov (' + labels + ')' if i == 0 else '':<24}"
+                + " ".join(f"{v:11.4g}" for v in r) for i, r in enumerate(s.get("cov", []))]
+        rows += ["  " + " ".join(f"{v:.17g}" for v in r) for r in s.get("samples", [])]
     elif "frame" in line:
         body = line["frame"]
     elif "target" in line:
         body = f"of {line['target']}"
     else:
         body = f"{len(line.get('frames', []))} frames"
-    return f"{head} {body} (sender {line['sender']}, id {line['id']})"
+    return "\n".join([f"{head} {body} (sender {line['sender']}, id {line['id']})", *rows])

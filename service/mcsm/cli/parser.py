@@ -287,9 +287,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="no progress bar (terminal) or progress lines (log)")
 
     c = sub.add_parser("cat", help="print the inputs of a recording, one per line",
-                       description=_para("Print every recorded input, one per line: map, seq, "
-                                   "operation, frames, sender and request id, and each AT as "
-                                   "its sample count, mean and covariance (or every sample)."),
+                       description=_para("Print every recorded input, a line each: map, seq, "
+                                   "operation, frames, sender and request id, and each AT's "
+                                   "sample count and mean; its covariance (or with --samples "
+                                   "every sample) follows on indented lines."),
                        epilog=EXIT_CODES_HELP, formatter_class=raw)
     c.add_argument("file", type=Path, nargs="+",
                    help="the recording; a split recording's files (paths, a directory or a "
