@@ -82,6 +82,18 @@ def test_play_rosbag_refuses_what_it_cannot_read(tmp_path: Path, ros_server: Ser
     code = client_cli.main(["play-rosbag", str(bad), "--connect", ros_server.endpoint,
                             "--map", "round"])
     assert code == 2 and "not nav_msgs/msg/Odometry" in capsys.readouterr().err
+    # a bag without any of the input topics (an exported map, say) names the flags to use
+    other = tmp_path / "other"
+    with Writer(other, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        c = w.add_connection("/chatter", "std_msgs/msg/String", typestore=STORE)
+        w.write(c, 1, STORE.serialize_cdr(STORE.types["std_msgs/msg/String"](data="x"),
+                                          "std_msgs/msg/String"))
+    for extra in ([], ["--odometry-topic", "/nope"]):
+        code = client_cli.main(["play-rosbag", str(other), "--connect", ros_server.endpoint,
+                                "--map", "round", *extra])
+        err = capsys.readouterr().err
+        assert code == 2 and "has none of the input topics" in err, err
+        assert "its topics: /chatter" in err and "--constraint-topic" in err
 
 
 def test_export_rosbag_round_trip(tmp_path: Path, ros_server: ServerProcess,

@@ -164,6 +164,11 @@ def read_bag(path: str | Path, options: MappingOptions) -> tuple[list[BagMessage
                 if c.msgtype != INPUT_TYPE:
                     raise BagError(f"topic {c.topic} carries {c.msgtype}, not {INPUT_TYPE}")
                 conns.append(c)
+            if not conns:  # an empty list would make rosbags read every topic
+                raise BagError(
+                    f"{p} has none of the input topics ({', '.join(options.topics)}); its "
+                    f"topics: {', '.join(skipped) or 'none'}. Name yours with --odometry-topic,"
+                    " --constraint-topic or --landmark-topic")
             for i, (conn, t, raw) in enumerate(reader.messages(connections=conns)):
                 msg = reader.deserialize(raw, conn.msgtype)
                 kind = options.kind_of(conn.topic)
