@@ -63,7 +63,7 @@ from mcsm.errors import (
     Unreachable,
 )
 from mcsm.map import ops
-from mcsm.serve.connect import ZenohConfigLike, client_config
+from mcsm.serve.connect import ZenohConfigLike, client_config, listening_at, zenoh_error_text
 
 log = logging.getLogger(__name__)
 
@@ -143,9 +143,9 @@ class MapClient:
         try:
             self.session = zenoh.open(conf)
         except zenoh.ZError as exc:
-            why = str(exc).split(" at /", 1)[0]  # drop zenoh's source location
-            raise Unreachable(connect or "the configured endpoints",
-                              _connect_timeout_s(conf), f"Zenoh: {why}") from None
+            raise Unreachable(connect or "the configured endpoints", _connect_timeout_s(conf),
+                              f"Zenoh: {zenoh_error_text(exc)}",
+                              listening=bool(listening_at(conf))) from None
         self.sender = sender if sender is not None else str(self.session.zid())
         self._id_base = uuid.uuid4().hex[:16]
         self._counter = itertools.count(1)

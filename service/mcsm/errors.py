@@ -203,12 +203,16 @@ class Unreachable(Timeout):
     """The client's Zenoh session could not connect to any endpoint (nothing listens there, or
     the network refuses): said at once, after Zenoh's own connect timeout."""
 
-    def __init__(self, where: str, connect_timeout_s: float, detail: str = "") -> None:
+    def __init__(self, where: str, connect_timeout_s: float, detail: str = "",
+                 listening: bool = False) -> None:
+        hint = ("something listens there but did not complete Zenoh's handshake: it wants "
+                "credentials or TLS (--zenoh-config with this identity's config, "
+                "docs/deploy.md), or it is not a Zenoh endpoint" if listening else
+                "is `mcsm serve` (or a router) running there?")
         McsmError.__init__(
-            self, f"cannot connect to {where}: no Zenoh peer accepted a connection within "
-            f"{connect_timeout_s:g} s{f' ({detail})' if detail else ''}; is `mcsm serve` "
-            "(or a router) running there?", what="connect", where=where,
-            timeout_s=connect_timeout_s)
+            self, f"cannot connect to {where}: no Zenoh session opened within Zenoh's connect "
+            f"timeout, {connect_timeout_s:g} s{f' ({detail})' if detail else ''}; {hint}",
+            what="connect", where=where, timeout_s=connect_timeout_s)
 
 
 class NoPermittedServer(Timeout):

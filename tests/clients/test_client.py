@@ -259,7 +259,9 @@ def test_connection_args_and_configs(tmp_path: Path, monkeypatch: pytest.MonkeyP
     for bad in ("127.0.0.1:7457", "tcp/127.0.0.1", "tcp:127.0.0.1:1", ""):
         with pytest.raises(BadMessage, match="tcp/127.0.0.1:7457"):
             check_endpoint(bad)
-    for good in ("tcp/127.0.0.1:1", "tls/localhost:7457", "tcp/[::1]:80", "unixsock-stream/x"):
+    with pytest.raises(BadMessage, match="a port from 0 to 65535"):
+        check_endpoint("tcp/127.0.0.1:65536")
+    for good in ("tcp/127.0.0.1:65535", "tls/localhost:7457", "tcp/[::1]:80", "unixsock-stream/x"):
         assert check_endpoint(good) == good
     # the one-line warning of a server reachable off this host
     assert security_warning(server_config()) is None

@@ -7,6 +7,7 @@ the server, or ``mcsm --help``, loads no ROS library."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import time
@@ -129,3 +130,17 @@ def iter_lines(proc: McsmProcess) -> list[str]:
             break
         lines.append(line)
     return lines
+
+
+def test_node_serve_record_refuses_an_existing_file_and_a_missing_folder(
+        tmp_path: Path, ros_env: dict[str, str]) -> None:
+    old = tmp_path / "old.mcap"
+    old.write_bytes(b"")
+    typo = tmp_path / "nosuch" / "x.mcap"
+    for path, why in ((old, "exists; a recording is never overwritten"),
+                      (typo, f"its folder {typo.parent} does not exist")):
+        r = subprocess.run([sys.executable, "-m", "mcsm.cli", "ros2", "--serve", "--record",
+                            str(path)], capture_output=True, text=True, timeout=60,
+                           env={**os.environ, **ros_env})
+        assert r.returncode == 2 and f"mcsm ros2: --record {path}: {why}" in r.stderr, r.stderr
+    assert not typo.parent.exists() and old.read_bytes() == b""

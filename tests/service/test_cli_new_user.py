@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import signal
+import socket
 import threading
 import time
 from pathlib import Path
@@ -111,7 +112,59 @@ def test_a_refused_connection_says_so_at_once(capsys: pytest.CaptureFixture[str]
     t0 = time.monotonic()
     assert main(["info", "--connect", endpoint]) == 3  # MapClient raised Unreachable
     err = capsys.readouterr().err
-    assert err.startswith(f"mcsm-client info: cannot connect to {endpoint}: no Zenoh peer "
-                          "accepted a connection within 2 s") and "no reply within" not in err
+    assert err.startswith(f"mcsm-client info: cannot connect to {endpoint}: no Zenoh session "
+                          "opened within Zenoh's connect timeout, 2 s")
+    assert "no reply within" not in err
+    assert "is `mcsm serve` (or a router) running there?" in err and ".rs:" not in err
     assert time.monotonic() - t0 < 9.0
     assert issubclass(Unreachable, Timeout)  # code catching Timeout still catches it
+
+
+def test_a_refused_handshake_is_not_called_a_missing_server(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """Something accepts the TCP connection but the Zenoh session does not open (a server that
+    wants credentials or TLS answers Zenoh's handshake no better than this socket does): the
+    message says so instead of asking whether a server runs there."""
+    with socket.create_server(("127.0.0.1", 0)) as listener:
+        endpoint = f"tcp/127.0.0.1:{listener.getsockname()[1]}"
+        assert main(["info", "--connect", endpoint]) == 3
+    err = capsys.readouterr().err
+    assert f"cannot connect to {endpoint}" in err and "running there?" not in err
+    assert "something listens there but did not complete Zenoh's handshake: it wants " \
+           "credentials or TLS" in err
+
+
+def test_serve_on_a_port_in_use_or_out_of_range_says_what_to_do(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    from mcsm.cli import main as mcsm_main
+
+    monkeypatch.chdir(tmp_path)
+    with socket.create_server(("127.0.0.1", 0)) as taken:
+        endpoint = f"tcp/127.0.0.1:{taken.getsockname()[1]}"
+        for argv in (["serve", "--listen", endpoint], ["router", "--listen", endpoint]):
+            assert mcsm_main(argv) == 2
+            err = capsys.readouterr().err
+            assert "Address already in use" in err and ".rs:" not in err, err
+            assert "pick a free port with --listen tcp/127.0.0.1:PORT" in err
+    assert mcsm_main(["serve", "--listen", "tcp/127.0.0.1:99999"]) == 2
+    assert "expected a port from 0 to 65535" in capsys.readouterr().err
+    assert not list(tmp_path.rglob("*.mcap"))  # nothing recorded
+
+
+def test_serve_record_refuses_an_existing_file_and_a_missing_folder(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A recording is never overwritten (the message says how to go on from it), and a folder
+    the user names must exist: a mistyped path is not created and recorded into."""
+    from mcsm.cli import main as mcsm_main
+
+    old = tmp_path / "old.mcap"
+    old.write_bytes(b"")
+    assert mcsm_main(["serve", "--record", str(old)]) == 2
+    err = capsys.readouterr().err
+    assert err == (f"mcsm serve: --record {old}: exists; a recording is never overwritten: name "
+                   f"a new file, or go on from it with --restore {old} --record NEW.mcap\n")
+    typo = tmp_path / "nosuch" / "x.mcap"
+    assert mcsm_main(["serve", "--record", str(typo)]) == 2
+    assert f"its folder {typo.parent} does not exist" in capsys.readouterr().err
+    assert not typo.parent.exists() and old.read_bytes() == b""

@@ -102,6 +102,12 @@ def run(args: argparse.Namespace) -> int:
     if args.serve and args.connect:
         print(f"{prog}: --serve starts its own server: no --connect", file=sys.stderr)
         return 2
+    if args.serve and args.record is not None:
+        from mcsm.log.writer import new_recording_problem
+
+        if why := new_recording_problem(Path(args.record)):
+            print(f"{prog}: --record {args.record}: {why}", file=sys.stderr)
+            return 2
     try:
         import rclpy
         from rclpy.executors import ExternalShutdownException

@@ -23,6 +23,7 @@ from mcsm.cli.common import (
 from mcsm.core.relinearize import Policy
 from mcsm.core.smap import DEFAULT_POLICY
 from mcsm.errors import McsmError
+from mcsm.log.writer import new_recording_problem
 from mcsm.map.deferral import DeferOptions
 
 log = logging.getLogger("mcsm")
@@ -157,7 +158,7 @@ def router_cmd(args: argparse.Namespace) -> int:
     """``mcsm router``: a Zenoh router (no map of its own) until SIGINT or SIGTERM."""
     import zenoh
 
-    from mcsm.serve.connect import router_config
+    from mcsm.serve.connect import router_config, zenoh_error_text
 
     logging.basicConfig(level=getattr(logging, str(args.log_level).upper(), logging.INFO),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
@@ -166,7 +167,7 @@ def router_cmd(args: argparse.Namespace) -> int:
         conf = router_config(args.listen, args.zenoh_config)
         session = zenoh.open(conf)
     except (McsmError, zenoh.ZError, OSError) as exc:
-        print(f"mcsm router: {exc}", file=sys.stderr)
+        print(f"mcsm router: {zenoh_error_text(exc)}", file=sys.stderr)
         return 2
     stop = threading.Event()
     old = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT,
@@ -186,13 +187,23 @@ def serve(args: argparse.Namespace) -> int:
     import zenoh
 
     from mcsm.log.progress import progress_bar
-    from mcsm.serve.connect import listen_endpoints, security_warning, server_config
+    from mcsm.serve.connect import (
+        listen_endpoints,
+        security_warning,
+        server_config,
+        zenoh_error_text,
+    )
     from mcsm.serve.server import Server, ServerOptions
 
     logging.basicConfig(level=getattr(logging, str(args.log_level).upper(), logging.INFO),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
                         stream=sys.stderr)
     record = args.record
+    if record is not None and (why := new_recording_problem(Path(record))):
+        more = f", or go on from it with --restore {record} --record NEW.mcap"
+        print(f"mcsm serve: --record {record}: {why}{more if Path(record).exists() else ''}",
+              file=sys.stderr)
+        return EXIT_USAGE
     if record is None:
         stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
         record = Path("recordings") / f"run-{stamp}.mcap"
@@ -242,7 +253,7 @@ def serve(args: argparse.Namespace) -> int:
             backend_for(opts.device)
         conf = server_config(args.listen, args.zenoh_config, connect=args.connect)
     except (McsmError, zenoh.ZError, OSError) as exc:
-        print(f"mcsm serve: {exc}", file=sys.stderr)
+        print(f"mcsm serve: {zenoh_error_text(exc)}", file=sys.stderr)
         return 2
     warning = security_warning(conf)
     if warning is not None:
@@ -250,7 +261,8 @@ def serve(args: argparse.Namespace) -> int:
     try:
         session = zenoh.open(conf)
     except zenoh.ZError as exc:
-        print(f"mcsm serve: cannot open the Zenoh session: {exc}", file=sys.stderr)
+        print(f"mcsm serve: cannot open the Zenoh session: {zenoh_error_text(exc)}",
+              file=sys.stderr)
         return 2
     stop = threading.Event()
 
@@ -264,8 +276,8 @@ def serve(args: argparse.Namespace) -> int:
     try:
         try:
             server.start()
-        except (McsmError, OSError) as exc:
-            print(f"\nmcsm serve: {exc}", file=sys.stderr)
+        except (McsmError, OSError) as exc:  # (after --restore's progress line: a new line)
+            print(f"{chr(10) if args.restore else ''}mcsm serve: {exc}", file=sys.stderr)
             code = EXIT_RECORDING_FAILED if _no_space(exc) else EXIT_USAGE
             return code
         if args.restore:

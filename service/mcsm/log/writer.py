@@ -40,6 +40,19 @@ def split_name(base: str | os.PathLike[str], index: int) -> Path:
     return b.with_name(f"{b.stem}_{int(index):04d}{b.suffix or '.mcap'}")
 
 
+
+def new_recording_problem(path: Path) -> str | None:
+    """Why a recording the user named (``--record PATH``) cannot be started, or None.
+
+    A recording is never overwritten, and the folder must exist: the writer creates a
+    missing one (the default ``recordings/``), but a mistyped path would record somewhere
+    unexpected."""
+    if path.exists():
+        return "exists; a recording is never overwritten: name a new file"
+    if not path.parent.is_dir():
+        return f"its folder {path.parent} does not exist (create it first)"
+    return None
+
 class Recorder:
     """Append-only MCAP writer; every record is flushed to the OS before the call returns.
 

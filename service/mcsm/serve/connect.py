@@ -161,7 +161,10 @@ def check_endpoint(endpoint: str, flag: str = "--connect") -> str:
     if ok:
         proto, _, addr = endpoint.partition("/")
         addr = addr.split("#", 1)[0].split("?", 1)[0]
-        ok = proto not in _PORTED or re.search(r":\d{1,5}$", addr) is not None
+        port = re.search(r":(\d{1,5})$", addr)
+        ok = proto not in _PORTED or port is not None
+        if port is not None and int(port.group(1)) > 65535:
+            raise BadMessage(flag, "a port from 0 to 65535", repr(endpoint))
     if not ok:
         raise BadMessage(flag, f"a Zenoh endpoint <protocol>/<address>, e.g. "
                                f"tcp/127.0.0.1:{DEFAULT_PORT} or tls/robot-host:{DEFAULT_PORT}",
@@ -340,3 +343,46 @@ def query_source(query: zenoh.Query) -> str:
     except (AttributeError, zenoh.ZError):
         return ""
     return str(si.source_id) if si is not None else ""
+
+
+_ZENOH_SOURCE = re.compile(r" at /[^\s\]]*\.rs:\d+\.?")
+
+
+def zenoh_error_text(exc: BaseException) -> str:
+    """A Zenoh error as one line a user can act on: without Zenoh's source locations, and
+    with the fix for the common mistakes (a port in use, an address not of this host)."""
+    text = _ZENOH_SOURCE.sub("", str(exc)).strip()
+    if "Address already in use" in text:
+        return (f"{text}: another process (an mcsm serve or router?) listens there; pick a "
+                "free port with --listen tcp/127.0.0.1:PORT")
+    if "Cannot assign requested address" in text:
+        return (f"{text}: that address is not one of this host's; listen on 127.0.0.1 or an "
+                "address this host has")
+    return text
+
+
+def listening_at(conf: zenoh.Config, timeout_s: float = 0.5) -> list[str]:
+    """The config's tcp/tls connect endpoints at which something accepts a TCP connection.
+
+    After ``zenoh.open`` failed to connect, an endpoint listed here refused Zenoh's handshake
+    rather than the connection: it wants credentials or TLS that the config lacks (Zenoh says
+    only "Timeout!" either way)."""
+    import socket
+
+    try:
+        endpoints = json.loads(conf.get_json("connect/endpoints")) or []
+    except (zenoh.ZError, ValueError, TypeError):
+        return []
+    out = []
+    for e in endpoints if isinstance(endpoints, list) else []:
+        proto, _, addr = str(e).partition("/")
+        addr = addr.split("#", 1)[0].split("?", 1)[0]
+        host, _, port = addr.rpartition(":")
+        if proto not in ("tcp", "tls") or not port.isdigit():
+            continue
+        try:
+            with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s):
+                out.append(str(e))
+        except (OSError, ValueError, OverflowError):
+            continue
+    return out
