@@ -33,3 +33,24 @@ def test_every_help_is_plain_text_with_a_description(make, name) -> None:  # typ
     top = helps[0][1].split("\n\n")
     description = next(part for part in top[1:] if part.strip())
     assert description.rstrip().endswith("."), f"{name}'s description is cut: {description!r}"
+
+
+def _parsers(parser: argparse.ArgumentParser,
+             name: str) -> list[tuple[str, argparse.ArgumentParser]]:
+    out = [(name, parser)]
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub, subparser in action.choices.items():
+                out += _parsers(subparser, f"{name} {sub}")
+    return out
+
+
+@pytest.mark.parametrize("make, name", [(mcsm_parser, "mcsm"), (client_parser, "mcsm-client")])
+def test_every_option_says_what_it_does(make, name) -> None:  # type: ignore[no-untyped-def]
+    """An option listed without a word of help (``sim --landmarks`` once) leaves the user to
+    guess; a suppressed one is not listed and needs none."""
+    bare = [f"{cmd} {action.option_strings[0]}" for cmd, p in _parsers(make(), name)
+            for action in p._actions
+            if action.option_strings and action.help is None
+            and not isinstance(action, argparse._HelpAction | argparse._VersionAction)]
+    assert not bare, f"options without help: {bare}"

@@ -62,6 +62,9 @@ from mcsm_client.cli_map import (
 )
 from mcsm_client.cli_run import cmd_multirobot, cmd_play, cmd_play_rosbag, cmd_sim
 
+JSON_HELP = "print the result as one JSON object"
+NO_PROGRESS_HELP = "no progress bar or progress lines on stderr"
+
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser (exposed for tests and docs)."""
@@ -104,7 +107,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=None, help="random seed (default: fresh)")
     s.add_argument("--trusted", action="store_true",
                    help="bypass the server's loop-closure gate for this observation")
-    s.add_argument("--json", action="store_true")
+    s.add_argument("--json", action="store_true", help=JSON_HELP)
     _add_common(s)
 
     s = sub.add_parser("query", help="the relation A->B: mean and covariance (or samples)")
@@ -113,12 +116,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--samples-out", type=Path, default=None, metavar="FILE.npy",
                    help="also save the (N, 7) samples as a .npy file")
     s.add_argument("--force", action="store_true", help="overwrite an existing --samples-out")
-    s.add_argument("--json", action="store_true")
+    s.add_argument("--json", action="store_true", help=JSON_HELP)
     _add_common(s)
 
     s = sub.add_parser("remove", help="remove a frame (other estimates unchanged)")
     s.add_argument("frame")
-    s.add_argument("--json", action="store_true")
+    s.add_argument("--json", action="store_true", help=JSON_HELP)
     _add_common(s)
 
     for name, text in (("retract", "take back an update by its request id (the map becomes "
@@ -127,7 +130,7 @@ def build_parser() -> argparse.ArgumentParser:
                                      "rejected (as trusted)")):
         s = sub.add_parser(name, help=text)
         s.add_argument("request_id", help="the update's request id (from its ack or events)")
-        s.add_argument("--json", action="store_true")
+        s.add_argument("--json", action="store_true", help=JSON_HELP)
         _add_common(s)
 
     s = sub.add_parser("relinearize", help="bring a component (or every component) back to the "
@@ -135,7 +138,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "samples (admin)")
     s.add_argument("frame", nargs="?", default="",
                    help="a frame of the component (default: every component)")
-    s.add_argument("--json", action="store_true")
+    s.add_argument("--json", action="store_true", help=JSON_HELP)
     _add_common(s)
 
     s = sub.add_parser("audit", help="run GTSAM's GNC over a map's recorded inputs and retract "
@@ -151,17 +154,17 @@ def build_parser() -> argparse.ArgumentParser:
                    help="send the decisions to the server (default: print them only)")
     s.add_argument("--gate", type=float, default=0.99,
                    help="chi-square quantile the residuals are judged against (default 0.99)")
-    s.add_argument("--json", action="store_true")
+    s.add_argument("--json", action="store_true", help=JSON_HELP)
     _add_common(s)
 
     s = sub.add_parser("servers", help="every map with a live server, its server id and role "
                        "(all servers reachable from here, e.g. behind a router)")
-    s.add_argument("--json", action="store_true")
+    s.add_argument("--json", action="store_true", help=JSON_HELP)
     _add_common(s)
 
     s = sub.add_parser("verdict", help="what the map did with a past request (gate verdict)")
     s.add_argument("request_id")
-    s.add_argument("--json", action="store_true")
+    s.add_argument("--json", action="store_true", help=JSON_HELP)
     _add_common(s)
 
     s = sub.add_parser("watch", help="print the map's events as they happen (Ctrl-C stops)")
@@ -180,13 +183,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="keep only the first pose, the current pose and the landmarks")
     s.add_argument("--order", choices=("file", "pose"), default="file",
                    help="file order, or each constraint once its newest pose exists")
-    s.add_argument("--max-constraints", type=int, default=None, metavar="K")
+    s.add_argument("--max-constraints", type=int, default=None, metavar="K",
+                   help="send only the first K constraints (default: all)")
     s.add_argument("--noise", choices=("auto", "information", "sqrt_information",
                                        "covariance"), default="auto",
                    help="how to read g2o noise numbers (default: auto-detect)")
     s.add_argument("--stop-on-error", action="store_true",
                    help="stop at the first refused update (default: count and go on)")
-    s.add_argument("--no-progress", action="store_true")
+    s.add_argument("--no-progress", action="store_true", help=NO_PROGRESS_HELP)
     s.add_argument("--json", action="store_true", help="print the summary as JSON")
     _add_in_process(s)
     _add_common(s)
@@ -207,9 +211,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a point-landmark topic (repeatable; default /mcsm/landmarks)")
     s.add_argument("--frame-prefix", default="", metavar="NS",
                    help="prepended to every frame id (NS/base_link)")
-    s.add_argument("--keyframe-distance-m", type=float, default=0.5)
-    s.add_argument("--keyframe-angle-rad", type=float, default=0.5)
-    s.add_argument("--no-progress", action="store_true")
+    s.add_argument("--keyframe-distance-m", type=float, default=0.5,
+                   help="a new odometry keyframe after this much travel (default %(default)s m)")
+    s.add_argument("--keyframe-angle-rad", type=float, default=0.5,
+                   help="... or this much turn (default %(default)s rad)")
+    s.add_argument("--no-progress", action="store_true", help=NO_PROGRESS_HELP)
     s.add_argument("--json", action="store_true", help="print the summary as JSON")
     _add_common(s)
 
@@ -217,13 +223,15 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--iterations", type=int, default=340, help="odometry steps (340: one lap)")
     s.add_argument("--sigma-theta-deg", type=float, default=0.0,
                    help="odometry heading noise, degrees (paper: 0 and 0.1)")
-    s.add_argument("--landmarks", type=int, default=200)
-    s.add_argument("--score-every", type=int, default=10)
+    s.add_argument("--landmarks", type=int, default=200,
+                   help="landmarks in the world (default %(default)s)")
+    s.add_argument("--score-every", type=int, default=10, metavar="K",
+                   help="score RMS and NEES every K iterations (default %(default)s)")
     s.add_argument("--unbounded", action="store_true", help="keep every pose frame")
     s.add_argument("--csv", type=Path, default=None, help="write per-iteration scores here")
     s.add_argument("--png", type=Path, default=None, help="plot here (needs matplotlib)")
     s.add_argument("--force", action="store_true", help="overwrite existing --csv/--png files")
-    s.add_argument("--json", action="store_true")
+    s.add_argument("--json", action="store_true", help=JSON_HELP)
     _add_in_process(s)
     _add_common(s)
 
@@ -234,7 +242,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--map-b", default=None, metavar="NAME",
                    help="robot B's own map on the same server")
     s.add_argument("--landmarks", type=int, default=200, help="landmarks in the world")
-    s.add_argument("--json", action="store_true")
+    s.add_argument("--json", action="store_true", help=JSON_HELP)
     _add_in_process(s)
     _add_common(s)
     return p

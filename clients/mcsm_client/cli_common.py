@@ -99,6 +99,9 @@ def _ack_text(ack: Any) -> str:
     elif v is not None and v.status in ("pending", "rejected"):  # held or refused by deferral
         extra += f" verdict={v.status} [{v.reason}]"
     comp = f" component={ack.component}" if ack.component is not None else ""
+    if ack.kind == "rejected":  # recorded and acknowledged, but the map is unchanged
+        head = "pending" if v is not None and v.status == "pending" else "rejected"
+        return f"{head} seq={ack.seq} id={ack.request_id}{comp}{extra}"
     return f"ok seq={ack.seq} id={ack.request_id} {ack.kind}{comp}{extra}"
 
 

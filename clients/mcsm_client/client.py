@@ -277,7 +277,7 @@ class MapClient:
         if last_error is not None and cause == "slow":
             raise last_error
         if cause == "none":
-            raise NoServer(self.map, self.keys.alive_any, t)
+            raise NoServer(self.map, self.keys.alive_any, t, self.served_maps())
         if cause == "silent":
             raise NoPermittedServer(key, last_server, t)
         raise Timeout(f"{what} (server {last_server} is alive but did not answer)", t)
@@ -513,6 +513,21 @@ class MapClient:
                 key = str(reply.ok.key_expr)
                 if key.startswith(prefix):
                     out.append(key[len(prefix):])
+        return sorted(out)
+
+    def served_maps(self, timeout_s: float = 1.0) -> list[str]:
+        """Names of the maps under this client's prefix that a live server serves (their
+        liveliness tokens, as far as this session may see them)."""
+        head = f"{self.keys.prefix}/"
+        out: set[str] = set()
+        try:
+            for reply in self.session.liveliness().get(f"{head}*/alive/*", timeout=timeout_s):
+                if reply.ok is not None:
+                    key = str(reply.ok.key_expr)
+                    if key.startswith(head):
+                        out.add(key[len(head):].split("/", 1)[0])
+        except zenoh.ZError as exc:
+            log.debug("served maps: %s", exc)
         return sorted(out)
 
     # ---------------------------------------------------------------- events

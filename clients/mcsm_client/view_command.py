@@ -42,7 +42,9 @@ def add_parser(sub: Any) -> None:
                    help="sample points per frame in the point cloud (default 100; 0: none)")
     v.add_argument("--timeout", type=float, default=10.0, metavar="S",
                    help="wait this long for the map server (default 10 s)")
-    v.add_argument("--log-level", default="INFO")
+    v.add_argument("--log-level", default="INFO", type=str.upper,
+                   choices=("DEBUG", "INFO", "WARNING", "ERROR"),
+                   help="default %(default)s")
     v.set_defaults(plugin_run=run)
 
 

@@ -192,11 +192,15 @@ class Timeout(McsmError):
 class NoServer(Timeout):
     """No live server serves the map (no liveliness token) within the call's timeout."""
 
-    def __init__(self, map_name: str, token_key: str, timeout_s: float) -> None:
+    def __init__(self, map_name: str, token_key: str, timeout_s: float,
+                 served: list[str] | None = None) -> None:
+        seen = ("" if served is None else
+                f"; maps served here: {', '.join(served)}" if served else
+                "; no map is served here (no server, or none this identity may see)")
         McsmError.__init__(
             self, f"no server serves map {map_name!r} (no liveliness token on {token_key}) "
-            f"within {timeout_s:g} s", what="wait for server", map=map_name, key=token_key,
-            timeout_s=timeout_s)
+            f"within {timeout_s:g} s{seen}", what="wait for server", map=map_name,
+            key=token_key, timeout_s=timeout_s)
 
 
 class Unreachable(Timeout):
@@ -225,9 +229,9 @@ class NoPermittedServer(Timeout):
     def __init__(self, key: str, server_id: str, timeout_s: float) -> None:
         McsmError.__init__(
             self, f"no permitted server for {key}: server {server_id} is alive but every "
-            f"request got no reply for {timeout_s:g} s (denied by the access-control list, "
-            "or a key it does not serve)", what=key, key=key, server_id=server_id,
-            timeout_s=timeout_s)
+            f"request got no reply for {timeout_s:g} s (denied by the access-control list: a "
+            "robot's identity writes only with --namespace NAME; or a key it does not serve)",
+            what=key, key=key, server_id=server_id, timeout_s=timeout_s)
 
 
 _REGISTRY: dict[str, type[McsmError]] = {

@@ -163,10 +163,16 @@ def test_silence_is_retried_with_the_same_id_until_the_full_timeout() -> None:
             while c.servers(0.2) and time.monotonic() < deadline:
                 pass  # the token's removal reaches the client
             t0 = time.monotonic()
-            with pytest.raises(NoServer, match="no server serves map"):
+            with pytest.raises(NoServer, match="no server serves map 'default'.*; no map is "
+                                               "served here"):
                 c.remove("a", timeout_s=0.5)
             # (a call starts no attempt with less than MIN_ATTEMPT_S left: it may end that early)
             assert 0.5 - MIN_ATTEMPT_S <= time.monotonic() - t0 < 5.0
+            # a map of another name is served: the message names it (a mistyped --map)
+            other = srv.liveliness().declare_token(f"mcsm/other/alive/{srv.zid()}")
+            with pytest.raises(NoServer, match="; maps served here: other$"):
+                c.remove("a", timeout_s=0.5)
+            other.undeclare()
     finally:
         qa.undeclare()
         srv.close()

@@ -47,13 +47,14 @@ def test_ids_exit_codes_and_messages_at_the_shell(tmp_path: Path, daemons: list[
     t.join(timeout=60)
     assert watched == [0]
     out = capsys.readouterr().out.splitlines()  # the watch's lines and the updates' replies
-    acks = [ln for ln in out if ln.startswith("ok ")]
+    acks = [ln for ln in out if ln.startswith(("ok ", "rejected "))]
     (js,) = [json.loads(ln) for ln in out if ln.startswith("{")]
     events = [ln for ln in out if ln.startswith("seq ")]
     assert acks[0].startswith("ok seq=1 id=") and " new_component component=a" in acks[0]
     update_id = acks[0].split("id=")[1].split()[0]
     assert js["request_id"] and js["seq"] == 2 and js["kind"] == "new_frame"
-    assert acks[1].startswith("ok seq=3 id=") and " rejected component=a verdict=rejected " \
+    # a gated closure is acknowledged, but its line does not start with "ok"
+    assert acks[1].startswith("rejected seq=3 id=") and " component=a verdict=rejected " \
         "nis=" in acks[1]
     assert len(events) == 3, out
     assert f"id={update_id} verdict=accepted component=a" in events[0]

@@ -56,7 +56,9 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--timeout-s", type=float, default=10.0,
                    help="how long one request waits for the server (default %(default)s)")
     p.add_argument("--node-name", default="mcsm_ros2", help="the ROS node's name")
-    p.add_argument("--log-level", default="INFO")
+    p.add_argument("--log-level", default="INFO", type=str.upper,
+                   choices=("DEBUG", "INFO", "WARNING", "ERROR"),
+                   help="default %(default)s")
     p.set_defaults(plugin_run=run, ros_args=[])
 
 

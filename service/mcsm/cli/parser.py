@@ -37,6 +37,7 @@ log = logging.getLogger("mcsm")
 
 
 
+LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
 DESCRIPTION = ("The Monte Carlo stochastic map server: serve a map over Zenoh; replay, inspect,\n"
                "plot and export its recordings; bridge ROS 2 and Foxglove.")
 
@@ -83,7 +84,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="endpoint to listen on, e.g. tcp/0.0.0.0:7447")
     rt.add_argument("--zenoh-config", default=None, metavar="FILE",
                     help="Zenoh JSON5 config (TLS, access control); its mode becomes router")
-    rt.add_argument("--log-level", default="INFO")
+    rt.add_argument("--log-level", default="INFO", type=str.upper,
+                    choices=LOG_LEVELS, help="default %(default)s")
     from mcsm.serve.natsrun import add_arguments as add_nats_cluster_args
 
     add_nats_cluster_args(sub.add_parser(
@@ -242,7 +244,8 @@ def build_parser() -> argparse.ArgumentParser:
     hs.add_argument("--log-max-age", type=float, default=DEFAULT_LOG_MAX_AGE_S, metavar="S",
                     help="a new map's log drops inputs older than this (default 0: never; "
                          "at least --id-ttl-s)")
-    s.add_argument("--log-level", default="INFO")
+    s.add_argument("--log-level", default="INFO", type=str.upper,
+                    choices=LOG_LEVELS, help="default %(default)s")
 
     raw = argparse.RawDescriptionHelpFormatter
     r = sub.add_parser("replay", help="rebuild the maps of a recording and check its digests",
