@@ -1,9 +1,9 @@
 """The paper's §6 experiment, short: a robot on a 50 m circle mapping 200 point features.
 
 PAPER §4: odometry and a 180°/30 m laser with the paper's noise; every ``score_every``
-iterations the landmark RMS error and NEES per dof against ground truth are printed, and a CSV
-is written. 340 iterations is one revolution (the large loop closes); the default here is
-shorter. ``mcsm-client sim`` is the full-featured command (PNG plot, σ_θ, ...).
+iterations the landmark RMS error and NEES per dof against ground truth are printed (and, with
+``--csv PATH``, written to a CSV). 340 iterations is one revolution (the large loop closes);
+the default here is shorter. ``mcsm-client sim`` is the full-featured command (PNG plot, σ_θ, ...).
 
     python clients/examples/paper_sim.py --in-process 300 --iterations 100
 """
@@ -49,7 +49,7 @@ if __name__ == "__main__":
     add_connection_args(p)
     p.add_argument("--in-process", type=int, default=None, metavar="N")
     p.add_argument("--iterations", type=int, default=Config.n_iterations)
-    p.add_argument("--csv", type=Path, default=None)
+    p.add_argument("--csv", type=Path, default=None, help="also write the scores here")
     args = p.parse_args()
     cfg = Config(n_iterations=args.iterations, csv=args.csv)
     if args.in_process:
