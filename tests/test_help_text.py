@@ -14,14 +14,20 @@ from mcsm_client.cli import build_parser as client_parser
 MARKUP = re.compile(r"``|:(?:func|mod|class|data|meth|attr):`")
 
 
-def _helps(parser: argparse.ArgumentParser, name: str) -> list[tuple[str, str]]:
-    """(name, help text) of ``parser`` and every subcommand under it."""
-    out = [(name, parser.format_help())]
+def _parsers(parser: argparse.ArgumentParser,
+             name: str) -> list[tuple[str, argparse.ArgumentParser]]:
+    """``parser`` and every subcommand's parser under it, with their command lines."""
+    out = [(name, parser)]
     for action in parser._actions:
         if isinstance(action, argparse._SubParsersAction):
             for sub, subparser in action.choices.items():
-                out += _helps(subparser, f"{name} {sub}")
+                out += _parsers(subparser, f"{name} {sub}")
     return out
+
+
+def _helps(parser: argparse.ArgumentParser, name: str) -> list[tuple[str, str]]:
+    """(name, help text) of ``parser`` and every subcommand under it."""
+    return [(cmd, p.format_help()) for cmd, p in _parsers(parser, name)]
 
 
 @pytest.mark.parametrize("make, name", [(mcsm_parser, "mcsm"), (client_parser, "mcsm-client")])
@@ -34,15 +40,6 @@ def test_every_help_is_plain_text_with_a_description(make, name) -> None:  # typ
     description = next(part for part in top[1:] if part.strip())
     assert description.rstrip().endswith("."), f"{name}'s description is cut: {description!r}"
 
-
-def _parsers(parser: argparse.ArgumentParser,
-             name: str) -> list[tuple[str, argparse.ArgumentParser]]:
-    out = [(name, parser)]
-    for action in parser._actions:
-        if isinstance(action, argparse._SubParsersAction):
-            for sub, subparser in action.choices.items():
-                out += _parsers(subparser, f"{name} {sub}")
-    return out
 
 
 @pytest.mark.parametrize("make, name", [(mcsm_parser, "mcsm"), (client_parser, "mcsm-client")])
