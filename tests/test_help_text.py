@@ -41,7 +41,6 @@ def test_every_help_is_plain_text_with_a_description(make, name) -> None:  # typ
     assert description.rstrip().endswith("."), f"{name}'s description is cut: {description!r}"
 
 
-
 @pytest.mark.parametrize("make, name", [(mcsm_parser, "mcsm"), (client_parser, "mcsm-client")])
 def test_every_option_says_what_it_does(make, name) -> None:  # type: ignore[no-untyped-def]
     """An option listed without a word of help (``sim --landmarks`` once) leaves the user to
