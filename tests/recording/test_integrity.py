@@ -30,8 +30,16 @@ from mcsm.core import ARITHMETIC_VERSION
 from mcsm.errors import McsmError
 from mcsm.log.progress import Progress
 from mcsm.log.reader import RecordingReader
+from mcsm.log.recover import recover
 from mcsm.log.replay import replay
-from mcsm.log.topics import INPUT_TOPICS, TOPIC_CHECKPOINT, TOPIC_CONFIG, decode_input, schema_bytes
+from mcsm.log.topics import (
+    INPUT_TOPICS,
+    TOPIC_CHECKPOINT,
+    TOPIC_CONFIG,
+    RecordingError,
+    decode_input,
+    schema_bytes,
+)
 from mcsm.log.writer import Recorder
 from mcsm.map.state import MapState
 from mcsm_client.client import MapClient
@@ -271,6 +279,15 @@ def test_recover_refuses_bad_paths_before_reading(files: dict[str, Path], tmp_pa
     assert mcsm_main(["recover", str(junk), "-o", str(tmp_path / "o.mcap")]) == EXIT_USAGE
     assert "not an MCAP file" in capsys.readouterr().err
     assert not (tmp_path / "o.mcap").exists()
+    # the output is checked before the input is read: junk into an existing file names the file
+    assert mcsm_main(["recover", str(junk), "-o", str(existing)]) == EXIT_USAGE
+    err = capsys.readouterr().err
+    assert "exists; refusing to overwrite" in err and "not an MCAP" not in err
+    # the library refuses an existing output before it reads, and never removes what it did
+    # not create
+    with pytest.raises(RecordingError, match="exists"):
+        recover(junk, existing)
+    assert existing.read_bytes() == b"keep me"
 
 
 def test_user_mistakes_get_a_message_not_a_traceback(tmp_path: Path) -> None:

@@ -147,6 +147,51 @@ def test_export_rosbag_round_trip(tmp_path: Path, ros_server: ServerProcess,
         assert np.all(np.abs(mean[:2] - [want.x, want.y]) < 5 * sd / np.sqrt(8) + 1e-9)
 
 
+def test_export_rosbag_stamp_at_and_force(tmp_path: Path, ros_server: ServerProcess,
+                                          reference: Reference,
+                                          capsys: pytest.CaptureFixture[str]) -> None:
+    """Every message is stamped with the receive time of the map's last input up to the
+    exported seq (``--at`` included); ``--force`` replaces a bag only once the new one is
+    written."""
+    from mcsm.log.reader import RecordingReader
+    from mcsm.log.topics import TOPIC_OPS
+    from mcsm.viz.scene import load_map
+
+    recv = {int(i.data["seq"]): int(i.data["recv_ns"])
+            for i in RecordingReader(ros_server.record, edges=False)
+            if i.topic in TOPIC_OPS and i.data.get("map") == "ref"}
+    last = max(recv)
+    for at, extra in ((last, []), (5, ["--at", "5"])):
+        out = tmp_path / f"bag-{at}"
+        assert mcsm_cli.main(["export-rosbag", str(ros_server.record), "-o", str(out), "--map",
+                              "ref", *extra]) == 0, capsys.readouterr().err
+        capsys.readouterr()
+        with AnyReader([out], default_typestore=STORE) as r:
+            msgs = [(c.topic, t, r.deserialize(raw, c.msgtype)) for c, t, raw in r.messages()]
+        assert {t for _, t, _ in msgs} == {recv[at]}
+        (tf,) = [m for topic, _, m in msgs if topic == "/tf"]
+        st = tf.transforms[0].header.stamp  # type: ignore[attr-defined]
+        assert st.sec * 10**9 + st.nanosec == recv[at]
+    # --at: the map as it was after seq 5
+    smap = load_map(ros_server.record, "ref", 5).map
+    odo = {m.child_frame_id: m for topic, _, m in msgs if topic == "/mcsm/frames"}
+    assert sorted(odo) == sorted(set(smap.frames()) - {"x0"})
+    mean, _ = smap.marginal("x0", sorted(odo)[0])
+    p = odo[sorted(odo)[0]].pose.pose.position
+    np.testing.assert_allclose([p.x, p.y, p.z], mean[:3], atol=1e-12)
+    # --force: a failed export leaves the old bag; a good one replaces it
+    old = tmp_path / f"bag-{last}"
+    before = sorted((f.name, f.stat().st_size) for f in old.iterdir())
+    assert mcsm_cli.main(["export-rosbag", str(ros_server.record), "-o", str(old), "--map",
+                          "nope", "--force"]) == 2
+    assert sorted((f.name, f.stat().st_size) for f in old.iterdir()) == before
+    assert mcsm_cli.main(["export-rosbag", str(ros_server.record), "-o", str(old), "--map",
+                          "ref", "--at", "5", "--force"]) == 0
+    with AnyReader([old], default_typestore=STORE) as r:
+        assert {t for _, t, _ in r.messages()} == {recv[5]}
+    assert sorted(f.name for f in tmp_path.iterdir()) == sorted([f"bag-{last}", "bag-5"])
+
+
 def test_play_rosbag_counts_invalid_messages(tmp_path: Path, ros_server: ServerProcess,
                                              reference: Reference,
                                              capsys: pytest.CaptureFixture[str]) -> None:

@@ -261,22 +261,16 @@ def _inspect_one(path: Path, as_json: bool) -> int:
 def recover_cmd(args: argparse.Namespace) -> int:
     """Recover one file into ``-o FILE``, or each file of a split recording into the new
     directory ``-o DIR`` (same names)."""
+    why = _output_file("recover", args.output)  # before anything is read
+    if why:
+        print(why, file=sys.stderr)
+        return EXIT_USAGE
     files, why = _input_files("recover", args.file)
     if why:
         print(why, file=sys.stderr)
         return EXIT_USAGE
     if len(files) == 1:
-        why = _output_file("recover", args.output)
-        if not why and args.output.resolve() == files[0].resolve():
-            why = "mcsm recover: the output must be a new file"
-        if why:
-            print(why, file=sys.stderr)
-            return EXIT_USAGE
         return _recover_one(args, files[0], args.output)
-    why = _output_file("recover", args.output)
-    if why:
-        print(why, file=sys.stderr)
-        return EXIT_USAGE
     args.output.mkdir()
     for f in files:
         code = _recover_one(args, f, args.output / f.name)
@@ -292,8 +286,7 @@ def _recover_one(args: argparse.Namespace, src: Path, dst: Path) -> int:
     bar = _progress(args, f"recover {src.name}")
     try:
         rep = recover(src, dst, progress=bar)
-    except (RecordingError, OSError) as exc:
-        dst.unlink(missing_ok=True)
+    except (RecordingError, OSError) as exc:  # (recover removes a copy it started)
         print(f"mcsm recover: {exc}", file=sys.stderr)
         return EXIT_USAGE
     finally:

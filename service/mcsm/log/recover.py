@@ -56,54 +56,61 @@ def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str],
     OSError
         If a file cannot be opened.
     """
-    reader = RecordingReader(src, progress)
     out = Path(dst)
     if out.exists():
         raise RecordingError(str(out), "exists; refusing to overwrite")
-    with open(out, "xb") as fo:
-        w = ChunkPerInputWriter(fo, lz4=True, library=f"mcsm {__version__} recover")
-        schema_ids: dict[tuple[str, str, bytes], int] = {}
-        channel_ids: dict[tuple[str, str, int], int] = {}
-        channels: dict[int, Channel] = {}
-        schemas: dict[int, Schema] = {}
-        counts: Counter[str] = Counter()
+    reader = RecordingReader(src, progress)
+    created = False  # the output is removed again only if this call made it
+    try:
+        with open(out, "xb") as fo:
+            created = True
+            w = ChunkPerInputWriter(fo, lz4=True, library=f"mcsm {__version__} recover")
+            schema_ids: dict[tuple[str, str, bytes], int] = {}
+            channel_ids: dict[tuple[str, str, int], int] = {}
+            channels: dict[int, Channel] = {}
+            schemas: dict[int, Schema] = {}
+            counts: Counter[str] = Counter()
 
-        def copy(r: Any) -> None:
-            if isinstance(r, Schema):
-                schemas[r.id] = r
-            elif isinstance(r, Channel):
-                channels[r.id] = r
-            elif isinstance(r, Metadata):
-                w.add_metadata(r.name, dict(r.metadata))
-            elif isinstance(r, Message) and r.channel_id in channels:
-                ch = channels[r.channel_id]
-                sid = 0
-                sch = schemas.get(ch.schema_id)
-                if sch is not None:
-                    skey = (sch.name, sch.encoding, bytes(sch.data))
-                    if skey not in schema_ids:
-                        schema_ids[skey] = w.register_schema(sch.name, sch.encoding, sch.data)
-                    sid = schema_ids[skey]
-                ckey = (ch.topic, ch.message_encoding, sid)
-                if ckey not in channel_ids:
-                    channel_ids[ckey] = w.register_channel(ch.topic, ch.message_encoding, sid,
-                                                           dict(ch.metadata))
-                lo, hi = sorted((int(r.log_time), int(r.publish_time)))
-                w.add_message(channel_ids[ckey], log_time=hi, data=r.data, publish_time=lo,
-                              sequence=r.sequence)
-                counts[ch.topic] += 1
+            def copy(r: Any) -> None:
+                if isinstance(r, Schema):
+                    schemas[r.id] = r
+                elif isinstance(r, Channel):
+                    channels[r.id] = r
+                elif isinstance(r, Metadata):
+                    w.add_metadata(r.name, dict(r.metadata))
+                elif isinstance(r, Message) and r.channel_id in channels:
+                    ch = channels[r.channel_id]
+                    sid = 0
+                    sch = schemas.get(ch.schema_id)
+                    if sch is not None:
+                        skey = (sch.name, sch.encoding, bytes(sch.data))
+                        if skey not in schema_ids:
+                            schema_ids[skey] = w.register_schema(sch.name, sch.encoding, sch.data)
+                        sid = schema_ids[skey]
+                    ckey = (ch.topic, ch.message_encoding, sid)
+                    if ckey not in channel_ids:
+                        channel_ids[ckey] = w.register_channel(ch.topic, ch.message_encoding, sid,
+                                                               dict(ch.metadata))
+                    lo, hi = sorted((int(r.log_time), int(r.publish_time)))
+                    w.add_message(channel_ids[ckey], log_time=hi, data=r.data, publish_time=lo,
+                                  sequence=r.sequence)
+                    counts[ch.topic] += 1
 
-        for r in reader.raw():
-            copy(r)
-        n_after = 0
-        if reader.damage is not None:
-            for _, records in scan_chunks(src, reader.stop_offset + 1):
-                n_after += 1
-                for r in records:
-                    copy(r)
-        w.finish()
-        fo.flush()
-        os.fsync(fo.fileno())
+            for r in reader.raw():
+                copy(r)
+            n_after = 0
+            if reader.damage is not None:
+                for _, records in scan_chunks(src, reader.stop_offset + 1):
+                    n_after += 1
+                    for r in records:
+                        copy(r)
+            w.finish()
+            fo.flush()
+            os.fsync(fo.fileno())
+    except BaseException:
+        if created:
+            out.unlink(missing_ok=True)
+        raise
     return RecoverReport(source_complete=reader.complete, source_cut=reader.cut,
                          damage=reader.damage, tail_error=reader.tail_error, messages=counts,
                          chunks_after_damage=n_after, bytes_written=out.stat().st_size)

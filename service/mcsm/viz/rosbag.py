@@ -1,8 +1,8 @@
 """``mcsm export-rosbag``: a recorded map as a ROS 2 bag (MCAP storage) that ROS tools read.
 
 Replays a recording (``mcsm.viz.scene.load_map``) and writes, with ``rosbags`` (the ``ros``
-extra; no ROS installation needed), one stamp of these topics (stamped with the map's last
-recorded input):
+extra; no ROS installation needed), one stamp of these topics
+(stamped with the receive time of the map's last input up to the exported seq):
 
 * ``/tf`` (``tf2_msgs/TFMessage``): every frame's mean under ``--map-frame`` (the frames of the
   origin's component; the origin at the identity) or under its component's root;
@@ -20,6 +20,7 @@ without ``--force``, rosbags not installed).
 from __future__ import annotations
 
 import argparse
+import os
 import shutil
 import sys
 from dataclasses import dataclass, field
@@ -61,12 +62,17 @@ def _load_rosbags() -> tuple[Any, Any, Any]:
     return Writer, StoragePlugin, get_typestore(Stores.ROS2_KILTED)
 
 
-def _last_time_ns(path: Path) -> int:
+def _input_time_ns(path: Path, map_name: str, seq: int) -> int:
+    """When the map's last input up to ``seq`` was received (its ``recv_ns``; 0 if none)."""
     from mcsm.log.reader import RecordingReader
+    from mcsm.log.topics import TOPIC_OPS
 
     t = 0
     for item in RecordingReader(path, edges=False):
-        t = max(t, int(item.log_time_ns))
+        d = item.data
+        if (item.topic in TOPIC_OPS and d.get("map") == map_name
+                and int(d.get("seq", 0)) <= seq):
+            t = int(d.get("recv_ns") or item.log_time_ns)
     return t
 
 
@@ -96,7 +102,7 @@ def export_rosbag(recording: str | Path, out: str | Path, *, map_name: str | Non
     if not is_frame_name(map_frame):
         raise McsmError(f"--map-frame {map_frame!r} is not a frame name")
     placed = ros.place_frames(smap, origin=origin, map_frame=map_frame)
-    t_ns = _last_time_ns(Path(recording))
+    t_ns = _input_time_ns(Path(recording), loaded.name, loaded.seq)
     rep = ExportRosbagReport(Path(out), loaded.name, loaded.seq, t_ns, notes=list(loaded.notes))
     rep.topics = write_map_bag(placed, t_ns, out)
     return rep
@@ -161,15 +167,24 @@ def run(args: argparse.Namespace) -> int:
     try:
         if not args.file.is_file():
             raise McsmError(f"no such recording: {args.file}")
-        if args.output.exists():
-            if not args.force:
-                raise McsmError(f"output {args.output} exists (--force replaces it)")
-            shutil.rmtree(args.output) if args.output.is_dir() else args.output.unlink()
+        if args.output.exists() and not args.force:
+            raise McsmError(f"output {args.output} exists (--force replaces it)")
         parent = args.output.parent if str(args.output.parent) else Path(".")
         if not parent.is_dir():
             raise McsmError(f"output folder {parent} does not exist")
-        rep = export_rosbag(args.file, args.output, map_name=args.map, at_seq=args.at,
-                            origin=args.origin, map_frame=args.map_frame)
+        # written in a folder beside it first (the bag's own name inside, which its file
+        # names follow): a failed export leaves an existing bag as it was
+        work = parent / f".export-rosbag-{os.getpid()}"
+        work.mkdir()
+        try:
+            rep = export_rosbag(args.file, work / args.output.name, map_name=args.map,
+                                at_seq=args.at, origin=args.origin, map_frame=args.map_frame)
+            if args.output.exists():
+                shutil.rmtree(args.output) if args.output.is_dir() else args.output.unlink()
+            (work / args.output.name).rename(args.output)
+            rep.out = args.output
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
     except (McsmError, OSError) as exc:
         print(f"mcsm export-rosbag: {exc}", file=sys.stderr)
         return 2
