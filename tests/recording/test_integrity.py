@@ -563,7 +563,9 @@ def test_cat_shows_removes_imports_retracts_and_reinstates(
                 ("import", wire.encode_submap_import("i1", sub)),
                 ("update", wire.encode_update("u2", "a", "c", noisy_at(rng, N, [0, 1, 0]))),
                 ("retract", wire.encode_retract("t1", "u2")),
-                ("reinstate", wire.encode_retract("t2", "u2"))]
+                ("reinstate", wire.encode_retract("t2", "u2")),
+                ("update", wire.encode_update("u3", "a", "l1",
+                                              rng.normal([2.0, 1.0, 0.0], 0.1, (N, 3))))]
     path = tmp_path / "r.mcap"
     rec = Recorder(path)
     st = MapState("default", StochasticMap(N))
@@ -575,7 +577,7 @@ def test_cat_shows_removes_imports_retracts_and_reinstates(
     assert mcsm_main(["cat", str(path), "--json"]) == EXIT_OK
     lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
     assert [x["op"] for x in lines] == ["update", "remove", "import", "update", "retract",
-                                        "reinstate"]
+                                        "reinstate", "update"]
     assert lines[1]["frame"] == "b"
     assert lines[4]["target"] == "u2" and lines[5]["target"] == "u2"
     assert all("error" not in x for x in lines)
@@ -583,7 +585,17 @@ def test_cat_shows_removes_imports_retracts_and_reinstates(
     assert imp["root"] == "q0" and imp["frames"] == ["q0", "q1", "q2"]
     assert len(imp["edges"]) == 2 and np.asarray(imp["edges"][1]["cov"]).shape == (6, 6)
     assert mcsm_main(["cat", str(path)]) == EXIT_OK
-    text = [t for t in capsys.readouterr().out.splitlines() if not t.startswith(" ")]
+    out = capsys.readouterr().out.splitlines()
+    text = [t for t in out if not t.startswith(" ")]
     assert text[1].startswith("default seq 2 remove b") and "3 frames" in text[2]
     assert text[4].startswith("default seq 5 retract of u2")
     assert text[5].startswith("default seq 6 reinstate of u2")
+    # a point: its mean, sender and request id on its line, its 3x3 covariance on 3 more
+    assert text[6].startswith("default seq 7 update a -> l1 N=") and \
+        text[6].endswith("(sender t, id u3)")
+    assert [float(v) for v in text[6].split("mean [")[1].split("]")[0].split()] == \
+        pytest.approx(lines[6]["samples"]["mean"], rel=1e-5)
+    rows = out[out.index(text[6]) + 1:]
+    assert len(rows) == 3 and rows[0].startswith("  cov (x y z) ")
+    np.testing.assert_allclose([[float(v) for v in r[26:].split()] for r in rows],
+                               lines[6]["samples"]["cov"], rtol=1e-3)

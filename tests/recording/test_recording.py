@@ -321,6 +321,12 @@ def test_inspect_says_which_checkpoints_it_lists(capsys: pytest.CaptureFixture[s
     assert f"checkpoints: {n} (the first 3 and the last 2 of {n} listed; --json lists all)" \
         in out
     assert out.count("\n    seq ") == 5
+    # --json lists every one, in order
+    assert mcsm_main(["inspect", str(shipped), "--json"]) == 0
+    maps = json.loads(capsys.readouterr().out)["maps"]
+    cps = [c for m in maps.values() for c in m["checkpoints"]]
+    assert len(cps) == n and [c[0] for c in cps] == sorted(c[0] for c in cps)
+    assert all(len(c[1]) == 64 for c in cps)  # seq, digest, reason
 
 
 @pytest.mark.parametrize("command", ["replay", "inspect", "recover", "cat", "plot", "export",

@@ -17,6 +17,7 @@ from mcsm import StochasticMap, cli, wire
 from mcsm.log.topics import decode_input
 from mcsm.log.writer import Recorder
 from mcsm.map.state import MapState
+from mcsm.viz.scene import load_map
 from scipy.spatial.transform import Rotation
 
 from tests.helpers import gaussian_at
@@ -237,6 +238,7 @@ def test_tum_trajectories_per_robot_and_evo_ape_reads_them(
     assert (f"{prefix}-A.x.tum: robot A.x, 12 poses (A.x1 .. A.x12); left out, sharing a "
             "time with the next pose: A.x0") in out
     assert f"{prefix}-B.x.tum: robot B.x, 12 poses (B.x1 .. B.x12); left" in out
+    smap = load_map(tmp_path / "rec.mcap", None).map
     rmse = {}
     for robot, poses in truth.items():
         est = np.loadtxt(f"{prefix}-{robot}.tum")
@@ -246,6 +248,12 @@ def test_tum_trajectories_per_robot_and_evo_ape_reads_them(
         rmse[robot] = float(np.sqrt(np.mean(err**2)))
         assert 0 < rmse[robot] < 0.2  # small odometry noise over 12 m
         np.testing.assert_allclose(np.linalg.norm(est[:, 4:], axis=1), 1.0, atol=1e-12)
+        # each row is the pose's final mean in its root's frame, the quaternion last (xyzw)
+        for k, row in enumerate(est, start=1):
+            mean, _ = smap.marginal(f"{robot}0", f"{robot}{k}")
+            np.testing.assert_allclose(row[1:4], mean[:3], atol=1e-9)
+            q = mean[3:] * np.sign(mean[3] * row[7] + np.dot(mean[4:], row[4:7]))
+            np.testing.assert_allclose(row[4:], [q[1], q[2], q[3], q[0]], atol=1e-9)
     # evo's own reader and metric agree (one robot: evo takes a second to start)
     ref = tmp_path / "truth-A.x.tum"
     np.savetxt(ref, [[t / 1e9, *v] for t, v in truth["A.x"]], fmt="%.9f")
@@ -260,3 +268,20 @@ def test_tum_trajectories_per_robot_and_evo_ape_reads_them(
     assert float(stat["sse"]) / float(stat["rmse"]) ** 2 == pytest.approx(12, rel=1e-3)
     assert cli.main(["export", "tum", str(tmp_path / "rec.mcap"), "-o", str(prefix)]) == 2
     assert "exists (--force overwrites it)" in capsys.readouterr().err
+
+
+def test_information_floors_the_covariances_eigenvalues() -> None:
+    """A noise-free constraint stays finite: the eigenvalues below MIN_VARIANCE are raised
+    to it, along the principal axes (a degenerate direction off the axes too); the others
+    are inverted as they are."""
+    from mcsm.viz.exchange import MIN_VARIANCE, information
+
+    rot = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
+    cov = rot @ np.diag([0.04, 1e-20, 0.0]) @ rot.T  # two directions without noise
+    info = information(cov)
+    assert np.all(np.isfinite(info))
+    np.testing.assert_allclose(rot.T @ info @ rot,
+                               np.diag([25.0, 1 / MIN_VARIANCE, 1 / MIN_VARIANCE]), rtol=1e-9,
+                               atol=1e-3)  # (1e-17 of the 1e12 entries: rounding)
+    full = np.diag([0.01, 0.02, 0.03])
+    np.testing.assert_allclose(information(full), np.linalg.inv(full), rtol=1e-12)

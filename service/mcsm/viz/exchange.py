@@ -14,8 +14,9 @@
 **Covariances in the convention g2o files use (and GTSAM reads).** An observation's
 covariance is taken from its samples over the body-frame (right) perturbation
 ``x = x̄ ⊕ δ``: translation ``R̄ᵀ (t − t̄)`` and rotation ``log(q̄⁻¹ q)``, the error GTSAM's
-``BetweenFactor`` and g2o's ``EdgeSE2`` use; the information matrix is its inverse (variances
-below :data:`MIN_VARIANCE` are raised to it, so a noise-free constraint stays finite). In
+``BetweenFactor`` and g2o's ``EdgeSE2`` use; the information matrix is its inverse (its
+eigenvalues below :data:`MIN_VARIANCE` are raised to it, so a noise-free constraint stays
+finite). In
 ``EDGE_SE3:QUAT`` the 21 numbers are the upper triangle over (translation, rotation vector),
 which is how GTSAM's ``readG2o`` reads them; g2o's own ``EdgeSE3`` measures rotation by the
 quaternion's vector part (about half the angle), so in g2o itself rotations weigh a quarter.
@@ -112,7 +113,8 @@ def _planar_constraint(c: Constraint) -> bool:
 
 
 def information(cov: npt.ArrayLike) -> Array:
-    """The information matrix of a covariance, variances floored at :data:`MIN_VARIANCE`."""
+    """The information matrix of a covariance whose eigenvalues (variances along its
+    principal axes) are floored at :data:`MIN_VARIANCE`."""
     c = np.asarray(cov, dtype=np.float64)
     lam, vec = np.linalg.eigh(0.5 * (c + c.T))
     lam = np.maximum(lam, MIN_VARIANCE)

@@ -1,0 +1,54 @@
+"""A default the docs state for a flag is the flag's default: every "`--flag` (VALUE)" and
+"`--flag`, default VALUE" in README.md, docs/ and deploy/ is checked against the parsers of
+both commands (a changed default left in the prose fails here)."""
+
+from __future__ import annotations
+
+import argparse
+import re
+from pathlib import Path
+
+from mcsm.cli.parser import build_parser as mcsm_parser
+from mcsm_client.cli import build_parser as client_parser
+
+ROOT = Path(__file__).resolve().parents[1]
+STATED = re.compile(r"`(--[a-z0-9-]+)`(?: \(|, default )([0-9][0-9,.]*)(?:\s+([KMG])iB)?")
+UNITS = {None: 1, "K": 2**10, "M": 2**20, "G": 2**30}
+
+
+def _defaults() -> dict[str, set[float]]:
+    """Every long option of both commands (all subcommands) and its numeric defaults."""
+    out: dict[str, set[float]] = {}
+
+    def walk(p: argparse.ArgumentParser) -> None:
+        for a in p._actions:
+            if isinstance(a, argparse._SubParsersAction):
+                for sub in a.choices.values():
+                    walk(sub)
+            elif isinstance(a.default, int | float) and not isinstance(a.default, bool):
+                for o in a.option_strings:
+                    out.setdefault(o, set()).add(float(a.default))
+
+    walk(mcsm_parser())
+    walk(client_parser())
+    return out
+
+
+def test_defaults_stated_in_the_docs_are_the_parsers() -> None:
+    defaults = _defaults()
+    pages = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md")),
+             *sorted((ROOT / "deploy").glob("*.md"))]
+    checked, wrong = [], []
+    for page in pages:
+        text = page.read_text()
+        for m in STATED.finditer(text):
+            flag, number, unit = m.groups()
+            if flag not in defaults:
+                continue  # a flag without a numeric default (or of another tool)
+            value = float(number.replace(",", "")) * UNITS[unit]
+            where = f"{page.name}:{text.count(chr(10), 0, m.start()) + 1} {flag}"
+            checked.append(where)
+            if value not in defaults[flag]:
+                wrong.append(f"{where}: docs say {m.group(0)!r}, the parser {defaults[flag]}")
+    assert not wrong, "\n".join(wrong)
+    assert len(checked) >= 8, checked  # the pattern still finds the stated defaults
