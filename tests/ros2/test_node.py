@@ -19,6 +19,7 @@ from mcsm_client.client import MapClient
 from mcsm_client.process import McsmProcess, ServerProcess
 
 from tests.ros2.conftest import Reference
+from tests.service.daemon_util import free_port
 
 PEER = Path(__file__).with_name("ros_peer.py")
 
@@ -144,3 +145,22 @@ def test_node_serve_record_refuses_an_existing_file_and_a_missing_folder(
                            env={**os.environ, **ros_env})
         assert r.returncode == 2 and f"mcsm ros2: --record {path}: {why}" in r.stderr, r.stderr
     assert not typo.parent.exists() and old.read_bytes() == b""
+
+
+def test_node_exit_codes_no_server_and_a_bad_parameter(ros_env: dict[str, str]) -> None:
+    """No server at the endpoint: exit 3 and a line saying so; a bad parameter: exit 2 at
+    once, with or without a server (parameters are read before the node looks for one)."""
+    dead = f"tcp/127.0.0.1:{free_port()}"
+    env = {**os.environ, **ros_env}
+    base = [sys.executable, "-m", "mcsm.cli", "ros2", "--connect", dead, "--timeout-s", "1"]
+    r = subprocess.run(base, capture_output=True, text=True, timeout=120, env=env)
+    assert r.returncode == 3 and "mcsm ros2: no map server: cannot connect" in r.stderr, \
+        r.stderr
+    for param, why in (("keyframe_distance_m:=-1.0", "keyframe_distance_m is -1: expected"),
+                       ("keyframe_distance_m:=abc", "of type 'STRING', expecting type 'DOUBLE'"),
+                       ("publish_period_s:=0.0", "publish_period_s is 0: expected"),
+                       ("map_frame:=''", "map_frame '' is not a frame name")):
+        r = subprocess.run([*base, "--ros-args", "-p", param], capture_output=True, text=True,
+                           timeout=120, env=env)
+        assert r.returncode == 2 and why in r.stderr, r.stderr
+        assert "no map server" not in r.stderr and "Traceback" not in r.stderr

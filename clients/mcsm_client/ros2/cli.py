@@ -133,6 +133,12 @@ def run(args: argparse.Namespace) -> int:
     node = None
     ros = None
     try:
+        node = rclpy.create_node(args.node_name)
+        try:  # before any server: a bad parameter is a usage error, whatever the network
+            opts = declare_parameters(node)
+        except ValueError as exc:
+            print(f"{prog}: {exc}", file=sys.stderr)
+            return 2
         if args.serve:
             server = _InProcessServer(args)
             connect = server.endpoint
@@ -145,12 +151,6 @@ def run(args: argparse.Namespace) -> int:
         for _ in range(2):
             clients.append(MapClient(timeout_s=args.timeout_s, sender=args.node_name, **kw))
         info = clients[0].wait_for_server(timeout_s=args.timeout_s)
-        node = rclpy.create_node(args.node_name)
-        try:
-            opts = declare_parameters(node)
-        except ValueError as exc:
-            print(f"{prog}: {exc}", file=sys.stderr)
-            return 2
         ros = RosNode(node, clients[0], clients[1], opts)
         stop = threading.Event()
         old = {sig: signal.signal(sig, lambda *_: stop.set())

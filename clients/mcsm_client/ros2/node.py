@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import heapq
 import logging
+import math
 import re
 import threading
 import time
@@ -27,6 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from mcsm.core.names import is_frame_name
 from mcsm.errors import McsmError, NoPermittedServer, NoServer, Timeout
 from mcsm.viz import ros, rosmsg
 from mcsm.viz.rosbag import path_topic, write_map_bag
@@ -384,12 +386,26 @@ def declare_parameters(node: Any) -> NodeOptions:
     """Declare :data:`PARAMETERS` on an rclpy node; their values (``--ros-args -p``) as
     :class:`NodeOptions`."""
     from rcl_interfaces.msg import ParameterDescriptor
+    from rclpy.exceptions import ParameterException
 
     for name, (default, text) in PARAMETERS.items():
-        node.declare_parameter(name, default, ParameterDescriptor(description=text))
+        try:
+            node.declare_parameter(name, default, ParameterDescriptor(description=text))
+        except ParameterException as exc:  # e.g. a string given for a number
+            raise ValueError(str(exc)) from None
 
     def get(name: str) -> Any:
         return node.get_parameter(name).value
+
+    for name, low, strict in (("keyframe_distance_m", 0.0, False),
+                              ("keyframe_angle_rad", 0.0, False),
+                              ("reorder_window_s", 0.0, False), ("publish_period_s", 0.0, True)):
+        v = float(get(name))
+        if not (v > low if strict else v >= low) or not math.isfinite(v):
+            raise ValueError(f"parameter {name} is {v:g}: expected a finite number "
+                             f"{'>' if strict else '>='} {low:g}")
+    if not is_frame_name(get("map_frame")):
+        raise ValueError(f"parameter map_frame {get('map_frame')!r} is not a frame name")
 
     pairs = []
     for entry in _strings(get("pose_pairs")):
