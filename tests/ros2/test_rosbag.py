@@ -23,16 +23,27 @@ from tests.ros2.conftest import Reference
 STORE = get_typestore(Stores.ROS2_KILTED)
 
 
-def write_bag(path: Path, ref: Reference, storage: StoragePlugin) -> None:
-    """The simulation's messages as a ROS 2 bag, log time = stamp, plus an unrelated topic."""
+def write_bag(path: Path, ref: Reference, storage: StoragePlugin,
+              shuffled: bool = False) -> None:
+    """The simulation's messages as a ROS 2 bag, log time = stamp, plus an unrelated topic;
+    ``shuffled``: the stamps written in a random order, with log times that do not follow
+    them (as a recorder on a loaded host may log them); messages of one stamp keep their
+    order (ties keep the recorded order, docs/ros2.md)."""
+    pairs = list(zip(ref.messages, ref.decoded, strict=True))
+    log_times = [m.stamp_ns for m, _ in pairs]
+    if shuffled:
+        stamps = sorted({m.stamp_ns for m, _ in pairs})
+        rank = dict(zip(stamps, np.random.default_rng(7207).permutation(len(stamps)),
+                        strict=True))
+        pairs = sorted(pairs, key=lambda p: rank[p[0].stamp_ns])  # stable: ties keep order
+        log_times = sorted(log_times)  # the k-th written gets the k-th time
     with Writer(path, version=9, storage_plugin=storage) as w:
         conns = {}
-        for m, msg in zip(ref.messages, ref.decoded, strict=True):
+        for (m, msg), t in zip(pairs, log_times, strict=True):
             if m.topic not in conns:
                 conns[m.topic] = w.add_connection(m.topic, "nav_msgs/msg/Odometry",
                                                   typestore=STORE)
-            w.write(conns[m.topic], m.stamp_ns,
-                    STORE.serialize_cdr(msg, "nav_msgs/msg/Odometry"))
+            w.write(conns[m.topic], t, STORE.serialize_cdr(msg, "nav_msgs/msg/Odometry"))
         other = w.add_connection("/chatter", "std_msgs/msg/String", typestore=STORE)
         w.write(other, 1, STORE.serialize_cdr(STORE.types["std_msgs/msg/String"](data="hi"),
                                               "std_msgs/msg/String"))
@@ -67,6 +78,29 @@ def test_play_rosbag_gives_the_reference_map(tmp_path: Path, ros_server: ServerP
         assert code == 0 and again["duplicates"] == len(reference.ids)
         assert again["applied"] == {}
         assert c.info().digest == reference.digest
+
+
+def test_play_rosbag_sorts_by_stamp_and_reads_one_file(tmp_path: Path,
+                                                       ros_server: ServerProcess,
+                                                       reference: Reference,
+                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    """A bag whose messages are logged out of stamp order gives the reference map (the
+    messages are applied in header-stamp order, not log order), read from its one .mcap file
+    rather than its folder."""
+    bag = tmp_path / "shuffled"
+    write_bag(bag, reference, StoragePlugin.MCAP, shuffled=True)
+    with AnyReader([bag], default_typestore=STORE) as r:
+        stamps = [r.deserialize(raw, c.msgtype).header.stamp for c, _, raw in r.messages()
+                  if c.topic != "/chatter"]
+    ns = [st.sec * 10**9 + st.nanosec for st in stamps]
+    assert ns != sorted(ns)  # log order is not stamp order
+    (one,) = bag.glob("*.mcap")
+    code = client_cli.main(["play-rosbag", str(one), "--connect", ros_server.endpoint, "--map",
+                            "shuffled", "--no-progress"])
+    assert code == 0, capsys.readouterr().err
+    with MapClient(map="shuffled", connect=ros_server.endpoint) as c:
+        info = c.info()
+        assert (info.seq, info.digest) == (reference.seq, reference.digest)
 
 
 def test_play_rosbag_refuses_what_it_cannot_read(tmp_path: Path, ros_server: ServerProcess,
