@@ -21,7 +21,7 @@ from mcsm.viz.scene import load_map
 from scipy.spatial.transform import Rotation
 
 from tests.helpers import gaussian_at
-from tests.viz.conftest import Recording, build_map
+from tests.viz.conftest import Recording, build_map, planar_at
 
 
 def body_cov(x: np.ndarray, about: Rotation | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -285,3 +285,36 @@ def test_information_floors_the_covariances_eigenvalues() -> None:
                                atol=1e-3)  # (1e-17 of the 1e12 entries: rounding)
     full = np.diag([0.01, 0.02, 0.03])
     np.testing.assert_allclose(information(full), np.linalg.inv(full), rtol=1e-12)
+
+
+def test_g2o_keeps_what_the_map_holds_after_retract_and_reinstate(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A retracted closure is left out and counted, a reinstated one is an edge again; vertex
+    ids are 0, 1, ... in the order the frames were added."""
+    n = 32
+    rng = np.random.default_rng(20261127)
+    ups = [(f"u{k}", f"x{k}", f"x{k + 1}", planar_at(rng, n, [1.0, 0.0], np.pi / 2))
+           for k in range(4)]
+    ups += [("c1", "x0", "x4", planar_at(rng, n, [0.0, 0.0], 0.0)),
+            ("c2", "x1", "x4", planar_at(rng, n, [0.0, -1.0], -np.pi / 2))]
+    payloads = [("update", wire.encode_update(rid, a, b, x)) for rid, a, b, x in ups]
+    payloads += [("retract", wire.encode_retract("t1", "c1")),
+                 ("retract", wire.encode_retract("t2", "c2")),
+                 ("reinstate", wire.encode_retract("t3", "c1"))]
+    path = tmp_path / "r.mcap"
+    rec = Recorder(path)
+    st = MapState("default", StochasticMap(n, gate=None))
+    rec.config(st, 100)
+    for i, (op, payload) in enumerate(payloads):
+        ack = st.apply(op, decode_input(op, payload, n), time_ns=10**9 + i)
+        rec.input(op, st.name, ack.seq, 10**9 + i, "t", ack.request_id, payload)
+    rec.close()
+    out = tmp_path / "m.g2o"
+    assert cli.main(["export", "g2o", str(path), "-o", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "constraints the map does not hold, left out: 1 retracted" in err, err
+    ids = frame_ids(out)
+    assert ids == {f"x{k}": k for k in range(5)}  # in the order the frames were added
+    edges = sorted((int(r.split()[1]), int(r.split()[2]))
+                   for r in out.read_text().splitlines() if r.startswith("EDGE_SE2 "))
+    assert edges == [(0, 1), (0, 4), (1, 2), (2, 3), (3, 4)]  # c1 back, c2 left out

@@ -253,3 +253,32 @@ def test_two_robots_draw_two_paths_thinned_with_a_legend(tmp_path: Path) -> None
                    for s in res.legend)
         assert any(s.startswith(f"component A.x0: 8 landmarks, {2 * steps + 2} poses")
                    for s in res.legend)
+
+
+def test_auto_view_is_top_for_a_planar_map_and_3d_otherwise(recording: Recording,
+                                                            tmp_path: Path) -> None:
+    from tests.viz.test_exchange import three_d_recording
+
+    flat = load_map(recording.path)
+    assert plot_map(map_view(flat.map, map_name="default", seq=flat.seq),
+                    tmp_path / "flat.png").view == "top"
+    three_d_recording(tmp_path / "3d.mcap")
+    solid = load_map(tmp_path / "3d.mcap")
+    assert plot_map(map_view(solid.map, map_name="default", seq=solid.seq),
+                    tmp_path / "solid.png").view == "3d"
+
+
+def test_cli_plot_of_a_diverging_recording_warns(tmp_path: Path,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """A recording whose replay diverges (a checkpoint's digest tampered with) is drawn as
+    replayed up to there, with a warning naming the divergence."""
+    from tests.recording.test_recording import _rewrite
+
+    shipped = Path(__file__).parents[2] / "recordings" / "loop-small.mcap"
+    bad = tmp_path / "diverged.mcap"
+    _rewrite(shipped, bad, "digest")  # the checkpoint at seq 10 says another digest
+    assert cli.main(["plot", str(bad), "-o", str(tmp_path / "d.png")]) == 0
+    err = capsys.readouterr().err
+    assert "mcsm plot: warning: replay diverged from the recording; showing the map as " \
+           "replayed up to there" in err and "seq 10" in err, err
+    assert (tmp_path / "d.png").stat().st_size > 0
