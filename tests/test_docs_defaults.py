@@ -1,4 +1,4 @@
-"""A default the docs state for a flag is the flag's default: every "`--flag` (VALUE)" and
+"""A default the docs state is the code's: every "`--flag` (VALUE)" and
 "`--flag`, default VALUE" in README.md, docs/ and deploy/ is checked against the parsers of
 both commands (a changed default left in the prose fails here)."""
 
@@ -52,3 +52,29 @@ def test_defaults_stated_in_the_docs_are_the_parsers() -> None:
                 wrong.append(f"{where}: docs say {m.group(0)!r}, the parser {defaults[flag]}")
     assert not wrong, "\n".join(wrong)
     assert len(checked) >= 8, checked  # the pattern still finds the stated defaults
+
+
+def test_ros_parameter_defaults_in_docs_are_the_nodes() -> None:
+    """docs/ros2.md's table of input topics and its "`name` (VALUE)" mentions state the
+    node's parameter defaults (``mcsm ros2 --help`` prints them from the same table)."""
+    from mcsm_client.ros2.params import PARAMETERS
+
+    text = (ROOT / "docs" / "ros2.md").read_text()
+    checked = []
+    for m in re.finditer(r"^\| `([a-z_]+)` \| `([^`]*)` \|", text, re.M):
+        name, value = m.groups()
+        if name in PARAMETERS:
+            checked.append(name)
+            assert PARAMETERS[name][0] == [value], (name, value)
+    for m in re.finditer(r"`([a-z_]+)` \((`[^`]*`|[0-9.]+)(?: s)?\)", text):
+        name, value = m.groups()
+        if name in PARAMETERS:
+            checked.append(name)
+            default = PARAMETERS[name][0]
+            if value.startswith("`"):
+                assert default == value.strip("`"), (name, value)
+            else:
+                assert float(default) == float(value), (name, value)
+    assert {"odometry_topics", "constraint_topics", "landmark_topics", "keyframe_distance_m",
+            "keyframe_angle_rad", "reorder_window_s", "publish_period_s",
+            "map_frame"} <= set(checked)
