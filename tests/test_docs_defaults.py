@@ -1,6 +1,7 @@
 """A default the docs state is the code's: every "`--flag` (VALUE)" and
 "`--flag`, default VALUE" in README.md, docs/ and deploy/ is checked against the parsers of
-both commands (a changed default left in the prose fails here)."""
+both commands (a changed default left in the prose fails here), and the ROS node's parameter
+defaults docs/ros2.md states against its parameter table."""
 
 from __future__ import annotations
 
