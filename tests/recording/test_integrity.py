@@ -322,6 +322,26 @@ def _write_legacy(path: Path, src: Path) -> None:
         w.finish()
 
 
+def test_format_1_files_inspect_cat_and_recover(tmp_path: Path,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    """A format-1 file (flat, no CRCs, no version; publish_time after log_time): inspect says
+    its integrity cannot be verified, cat prints every input, recover rewrites it indexed with
+    its times in order."""
+    src = tmp_path / "new.mcap"
+    record_session(src, N, 9, seed=8806, checkpoint_every=3)
+    old = tmp_path / "old.mcap"
+    _write_legacy(old, src)
+    assert mcsm_main(["inspect", str(old)]) == EXIT_OK
+    assert "integrity: flat layout without CRCs (format 1): integrity not verifiable" in \
+        capsys.readouterr().out
+    assert mcsm_main(["cat", str(old), "--json"]) == EXIT_OK
+    assert [json.loads(x)["seq"] for x in capsys.readouterr().out.splitlines()] == \
+        list(range(1, 10))
+    out = tmp_path / "indexed.mcap"
+    assert mcsm_main(["recover", str(old), "-o", str(out), "--no-progress"]) == EXIT_OK
+    check_indexed(out, 9)  # every input, publish_time <= log_time, every CRC
+
+
 @pytest.mark.parametrize("how", ["says-1", "no-field"])
 def test_replay_of_another_arithmetic_version_says_so(
         tmp_path: Path, how: str, monkeypatch: pytest.MonkeyPatch,

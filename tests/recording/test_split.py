@@ -176,6 +176,22 @@ def test_sets_with_a_gap_or_mixed_files_are_refused_by_name(
     assert mcsm_main(["recover", str(tmp_path / "a"), "-o", str(tmp_path / "rec")]) == 0
     assert sorted(p.name for p in (tmp_path / "rec").iterdir()) == [p.name for p in a]
     assert replay(sorted((tmp_path / "rec").iterdir())).identical
+    # a new split recording refuses a base whose numbered files exist, any one of them
+    with pytest.raises(RecordingError, match="run_0000.mcap: exists"):
+        Recorder(tmp_path / "a" / "run.mcap", split_bytes=20_000)
+    (tmp_path / "c").mkdir()
+    (tmp_path / "c" / "run_0003.mcap").write_bytes(b"")
+    with pytest.raises(RecordingError, match="run_0003.mcap: exists"):
+        Recorder(tmp_path / "c" / "run.mcap", split_bytes=20_000)
+    # a cut file before the last stops the replay there: exit 4, naming the file
+    cut = tmp_path / "cut"
+    shutil.copytree(tmp_path / "a", cut)
+    middle = cut / a[1].name
+    middle.write_bytes(middle.read_bytes()[: middle.stat().st_size // 2])
+    capsys.readouterr()
+    assert mcsm_main(["replay", str(cut), "--no-progress"]) == 4
+    out = capsys.readouterr().out
+    assert f"CUT: the file ends without a clean close ({a[1].name} (file 2 of {len(a)}):" in out, out
 
 
 def test_ids_survive_restore_after_restore_with_their_receive_times(tmp_path: Path) -> None:
