@@ -191,7 +191,8 @@ def test_sets_with_a_gap_or_mixed_files_are_refused_by_name(
     capsys.readouterr()
     assert mcsm_main(["replay", str(cut), "--no-progress"]) == 4
     out = capsys.readouterr().out
-    assert f"CUT: the file ends without a clean close ({a[1].name} (file 2 of {len(a)}):" in out, out
+    want = f"CUT: the file ends without a clean close ({a[1].name} (file 2 of {len(a)}):"
+    assert want in out, out
 
 
 def test_ids_survive_restore_after_restore_with_their_receive_times(tmp_path: Path) -> None:
