@@ -27,6 +27,7 @@ from mcsm.map.carry import decode_snapshot
 
 from tests.recording import test_split
 from tests.recording.test_split import Driver, _state
+from tests.service.daemon_util import free_port
 
 CHUNK = 4096
 
@@ -191,6 +192,12 @@ def test_a_damaged_part_never_drops_the_inputs_after_it_silently(
         assert "cannot be read back" in msg or "part 4" in msg, msg
     assert mcsm_main(["replay", str(tmp_path / "recovered.mcap")]) == EXIT_USAGE
     assert mcsm_main(["inspect", str(tmp_path / "recovered.mcap")]) == EXIT_USAGE
+    assert mcsm_main(["cat", str(tmp_path / "recovered.mcap")]) == EXIT_USAGE
+    # a server does not start from it (it would serve the state before the snapshot)
+    new = tmp_path / "new.mcap"
+    assert mcsm_main(["serve", "--listen", f"tcp/127.0.0.1:{free_port()}", "--restore",
+                      str(tmp_path / "recovered.mcap"), "--record", str(new)]) == EXIT_USAGE
+    assert not new.exists()
 
 
 def test_a_record_too_large_to_read_back_fails_loudly(

@@ -123,8 +123,8 @@ class Server:
         Raises
         ------
         RecordingError
-            If the restore file diverges or the record path exists.
-        """
+            If the restore file diverges or cannot be read (the new recording is removed
+            again), or the record path exists."""
         o = self.opts
         for name in [*o.maps, *o.standby_of]:
             wire.map_keys(name, o.prefix)  # check names before doing any work
@@ -147,22 +147,24 @@ class Server:
             self.recorder = Recorder(o.record, fsync=o.fsync, split_bytes=o.split_bytes,
                                      split_s=o.split_s)
         if restore:
-            rep = replay(restore, sink=self.recorder, from_snapshot=True, progress=self._progress,
-                         lru_size=o.lru_size, id_ttl_s=o.id_ttl_s, server_id=self.server_id,
-                         device=o.device)
-            if rep.divergence is not None:
+            try:
+                rep = replay(restore, sink=self.recorder, from_snapshot=True,
+                             progress=self._progress, lru_size=o.lru_size,
+                             id_ttl_s=o.id_ttl_s, server_id=self.server_id, device=o.device)
+                if rep.divergence is not None:
+                    raise RecordingError(str(o.restore), f"replay diverged: {rep.divergence}")
+            except (McsmError, OSError):
                 if self.recorder is not None:  # it only holds a copy of the old file's prefix
                     self.recorder.close()
                     for p in self.recorder.paths:
                         p.unlink(missing_ok=True)
-                raise RecordingError(str(o.restore), f"replay diverged: {rep.divergence}")
+                raise
             self.states.update(rep.states)
-            for st in self.states.values():
-                st.id_ttl_s = o.id_ttl_s
             log.info("restored %d map(s) from %s (%s): %s", len(rep.states), o.restore,
                      "complete" if rep.complete else f"truncated: {rep.tail_error}",
                      restore_summary(rep))
             for st in self.states.values():
+                st.id_ttl_s = o.id_ttl_s
                 if self.recorder is not None:
                     self.recorder.checkpoint(st.name, st.seq, st.digest(), "restore")
         restored = set(self.states)
