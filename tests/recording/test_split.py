@@ -26,7 +26,7 @@ from mcsm.log.chunkwriter import ChunkPerInputWriter
 from mcsm.log.reader import RecordingReader
 from mcsm.log.recset import resolve
 from mcsm.log.replay import replay
-from mcsm.log.topics import RecordingError, decode_input
+from mcsm.log.topics import TOPIC_OPS, RecordingError, decode_input
 from mcsm.log.writer import Recorder
 from mcsm.map import ops
 from mcsm.map.history import nbytes
@@ -399,3 +399,27 @@ def test_restore_starts_early_enough_for_a_retraction_after_the_latest_snapshot(
     assert fast.states["default"].digest() == dr.st.digest()
     hit = fast.states["default"].lookup("u3")
     assert hit is not None and hit.duplicate
+
+
+def test_a_split_below_the_snapshot_size_gives_files_of_about_twice_it(tmp_path: Path) -> None:
+    """docs/recordings.md, "Where it splits": a file is not split before its inputs take as
+    many bytes as the snapshot it starts with, so snapshots are at most half of every file;
+    a split size below the snapshot's gives files of two to three times the snapshot."""
+    rec = Recorder(tmp_path / "run.mcap", split_bytes=1_000)  # far below a snapshot
+    dr = Driver(rec, _state(), seed=7105, disk_every=0)  # only the splits' snapshots
+    rec.config(dr.st, 5)
+    for k in range(60):
+        dr.update(k)
+    dr.close()
+    assert len(rec.paths) >= 3
+    for p in rec.paths[1:-1]:
+        with open(p, "rb") as f:
+            sizes: dict[str, list[int]] = {}
+            for _, ch, msg in make_reader(f).iter_messages():
+                sizes.setdefault(ch.topic, []).append(len(msg.data))
+        snap = sum(n for t, ns in sizes.items() if t.startswith("/mcsm/snapshot") for n in ns)
+        inputs = [n for t, ns in sizes.items() if t in TOPIC_OPS for n in ns]
+        size = p.stat().st_size
+        assert inputs and snap > 1_000 and snap <= size / 2, (p.name, snap, size)
+        # twice the bytes the file starts with, plus its summary (an index entry per input)
+        assert 2 * snap < size < 3 * snap, (p.name, snap, size)
