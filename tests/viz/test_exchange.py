@@ -14,6 +14,7 @@ import gtsam
 import numpy as np
 import pytest
 from mcsm import StochasticMap, cli, wire
+from mcsm.log.replay import replay
 from mcsm.log.topics import decode_input
 from mcsm.log.writer import Recorder
 from mcsm.map.state import MapState
@@ -318,3 +319,19 @@ def test_g2o_keeps_what_the_map_holds_after_retract_and_reinstate(
     edges = sorted((int(r.split()[1]), int(r.split()[2]))
                    for r in out.read_text().splitlines() if r.startswith("EDGE_SE2 "))
     assert edges == [(0, 1), (0, 4), (1, 2), (2, 3), (3, 4)]  # c1 back, c2 left out
+    # TUM: without a stamp_ns, a pose's time is its creating update's receive time
+    assert cli.main(["export", "tum", str(path), "-o", str(tmp_path / "t")]) == 0
+    capsys.readouterr()
+    (traj,) = tmp_path.glob("t-*.tum")
+    rows = np.loadtxt(traj)
+    np.testing.assert_array_equal(rows[:, 0], [(10**9 + k) / 1e9 for k in range(4)])
+    # a cut file: every complete input, and a note saying so
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[: path.stat().st_size * 6 // 10])
+    complete = replay(cut)
+    assert complete.cut and 0 < complete.n_inputs < len(payloads)
+    out = tmp_path / "cut.g2o"
+    assert cli.main(["export", "g2o", str(cut), "-o", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "recording is cut short (" in err and "exported every complete input" in err, err
+    assert set(frame_ids(out)) == set(complete.states["default"].map.frames())
