@@ -2,8 +2,8 @@
 three viewers: a WebSocket client written here from Foxglove's protocol (serverInfo, advertise,
 subscribe, binary message data) offering ``foxglove.sdk.v1``, the same offering only the older
 name ``foxglove.websocket.v1``, and npm's ``@foxglove/ws-protocol`` client in its default
-setting (a Node script; skipped only without node and npm). Each decodes the scene and compares
-it with the map; the verdict log and the counters are checked too."""
+setting (a Node script, in its own test: skipped only without node and npm). Each decodes the
+scene and compares it with the map; the verdict log and the counters are checked too."""
 
 from __future__ import annotations
 
@@ -239,8 +239,9 @@ def node_viewer(url: str, node_modules: Path, ops: list[Any], workdir: Path) -> 
 
 
 @pytest.mark.slow
-def test_live_view_serves_the_changing_map_to_every_foxglove_client(
-        tmp_path: Path, node_modules: Path) -> None:
+def test_live_view_serves_the_changing_map_to_python_clients(tmp_path: Path) -> None:
+    """Both subprotocols, from a client written from the protocol (no node needed); the view
+    never writes to the map; SIGTERM stops it with exit 0."""
     from mcsm_client.client import MapClient
 
     rng = np.random.default_rng(20261124)
@@ -254,7 +255,6 @@ def test_live_view_serves_the_changing_map_to_every_foxglove_client(
             view, url = start_view(tmp_path, d.endpoint, free_port())
             ops = asyncio.run(python_viewer(url, SUBPROTOCOL, c, rng, ops, change=False))
             ops = asyncio.run(python_viewer(url, OLD_SUBPROTOCOL, c, rng, ops))
-            node_viewer(url, node_modules, ops, tmp_path)
             # a map nobody serves, and the WebSocket port already taken: one line, exit 2
             port = url.rsplit(":", 1)[1]
             for args, needle in [
@@ -268,11 +268,37 @@ def test_live_view_serves_the_changing_map_to_every_foxglove_client(
                 assert p.returncode == 2, p.stderr
                 err = p.stderr.strip().splitlines()
                 assert err[-1].startswith(needle) and "Traceback" not in p.stderr, p.stderr
-        view.send_signal(signal.SIGINT)
+            assert c.info().seq == len(ops)  # every change is the test's: the view wrote none
+        view.send_signal(signal.SIGTERM)
         assert view.wait(timeout=30) == 0, (tmp_path / "view.log").read_text()
         log = (tmp_path / "view.log").read_text()
         assert "Traceback" not in log
         assert "connected with foxglove.websocket.v1" in log  # the relay let the old name in
+    finally:
+        if view is not None and view.poll() is None:
+            view.kill()
+            view.wait(timeout=10)
+        d.stop(signal.SIGINT)
+
+
+def test_live_view_serves_npm_foxglove_client(tmp_path: Path, node_modules: Path) -> None:
+    """npm's @foxglove/ws-protocol FoxgloveClient in its default setting; SIGINT stops the
+    view with exit 0."""
+    from mcsm_client.client import MapClient
+
+    rng = np.random.default_rng(20261125)
+    ops = default_ops(rng)[:9]
+    d = start_daemon(tmp_path, "--samples", str(N), name="live-npm")
+    view: subprocess.Popen[str] | None = None
+    try:
+        with MapClient(connect=d.endpoint, timeout_s=30) as c:
+            for op in ops:
+                apply(c, op)
+            view, url = start_view(tmp_path, d.endpoint, free_port())
+            node_viewer(url, node_modules, ops, tmp_path)
+        view.send_signal(signal.SIGINT)
+        assert view.wait(timeout=30) == 0, (tmp_path / "view.log").read_text()
+        assert "Traceback" not in (tmp_path / "view.log").read_text()
     finally:
         if view is not None and view.poll() is None:
             view.kill()
