@@ -25,7 +25,7 @@ from rosbags.typesys import Stores, get_typestore
 N = 64
 ITERATIONS = 25
 LANDMARKS = 40
-MAPS = ("ref", "live", "mcap", "sqlite", "round", "shuffled")
+MAPS = ("ref", "live", "mcap", "sqlite", "round", "shuffled", "gated")
 
 
 @dataclass

@@ -241,3 +241,25 @@ def test_play_rosbag_counts_invalid_messages(tmp_path: Path, ros_server: ServerP
     code, out = play(ros_server, bag, "round", capsys)
     assert code == 1 and out["invalid"] == 1 and out["applied"] == {}
     assert "both 'x0'" in str(out["first_error"])
+
+
+def test_play_rosbag_exits_1_on_a_gate_rejection(tmp_path: Path, ros_server: ServerProcess,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    """A loop closure the gate refuses is counted (`rejected`) and the play exits 1; what was
+    applied stays applied."""
+    from mcsm.viz.rosmsg import odometry, rosbags_maker
+
+    make = rosbags_maker(STORE)
+    cov = np.diag([1e-4] * 6)
+    moves = [("a", "b", [1.0, 0, 0]), ("b", "c", [1.0, 0, 0]), ("a", "c", [5.0, 0, 0])]
+    bag = tmp_path / "closure"
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        c = w.add_connection("/mcsm/constraints", "nav_msgs/msg/Odometry", typestore=STORE)
+        for k, (a, b, xyz) in enumerate(moves, start=1):
+            msg = odometry(make, k * 10**9, a, b, np.array([*xyz, 1.0, 0, 0, 0]), cov)
+            w.write(c, k * 10**9, STORE.serialize_cdr(msg, "nav_msgs/msg/Odometry"))
+    code, out = play(ros_server, bag, "gated", capsys)
+    assert code == 1 and out["rejected"] == 1, out
+    assert out["applied"] == {"constraint": 2}, out
+    with MapClient(map="gated", connect=ros_server.endpoint) as cl:
+        assert cl.info().seq == 3  # the rejection is recorded and acknowledged too
