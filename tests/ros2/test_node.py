@@ -164,3 +164,26 @@ def test_node_exit_codes_no_server_and_a_bad_parameter(ros_env: dict[str, str]) 
                            timeout=120, env=env)
         assert r.returncode == 2 and why in r.stderr, r.stderr
         assert "no map server" not in r.stderr and "Traceback" not in r.stderr
+
+
+def test_the_built_tfmessage_has_the_real_type_hash(ros_env: dict[str, str]) -> None:
+    """The TFMessage type support built from the IDL (tf2_msgs has no wheel) has the type hash
+    docs/ros2.md quotes, which rosbags computes for the real type too: tf2 listeners and RViz
+    on a ROS 2 installation match it."""
+    code = ("import rclpy, time\n"
+            "from mcsm_client.ros2.tf2 import load_tfmessage\n"
+            "rclpy.init()\n"
+            "n = rclpy.create_node('hash_probe')\n"
+            "n.create_publisher(load_tfmessage(), '/tf_probe', 1)\n"
+            "(i,) = n.get_publishers_info_by_topic('/tf_probe')\n"
+            "print(i.topic_type, i.topic_type_hash)\n"
+            "n.destroy_node(); rclpy.shutdown()\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       timeout=120, env={**os.environ, **ros_env})
+    assert r.returncode == 0, r.stderr
+    from rosbags.typesys import Stores, get_typestore
+
+    real = get_typestore(Stores.ROS2_KILTED).hash_rihs01("tf2_msgs/msg/TFMessage")
+    doc = (Path(__file__).parents[2] / "docs" / "ros2.md").read_text()
+    assert real in doc
+    assert r.stdout.split() == ["tf2_msgs/msg/TFMessage", real]
