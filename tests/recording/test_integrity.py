@@ -619,3 +619,24 @@ def test_cat_shows_removes_imports_retracts_and_reinstates(
     assert len(rows) == 3 and rows[0].startswith("  cov (x y z) ")
     np.testing.assert_allclose([[float(v) for v in r[26:].split()] for r in rows],
                                lines[6]["samples"]["cov"], rtol=1e-3)
+
+
+def test_serve_restore_migrates_a_recording_of_another_arithmetic(tmp_path: Path) -> None:
+    """``mcsm serve --restore OLD.mcap`` of a version-1 file: a warning in the log, and the new
+    recording carries this arithmetic's version and digests, so it replays identical."""
+    src = tmp_path / "new.mcap"
+    record_session(src, N, 9, seed=8807, checkpoint_every=3)
+    old = tmp_path / "old.mcap"
+    _write_legacy(old, src)
+    d = start_daemon(tmp_path, "--samples", str(N), "--restore", str(old), name="migrated")
+    try:
+        assert "was recorded by arithmetic version" in d.log_text()
+    finally:
+        assert d.stop(signal.SIGINT) == 0, d.log_text()
+    reader = RecordingReader(d.record)
+    config = next(iter(reader)).data
+    assert config["arithmetic_version"] == ARITHMETIC_VERSION
+    assert reader.arithmetic_version == ARITHMETIC_VERSION  # (the metadata, once read)
+    rep = replay(d.record)
+    assert rep.identical and rep.complete and not rep.other_arithmetic
+    assert rep.states["default"].seq == 9

@@ -140,7 +140,8 @@ class RecordingReader:
 
     @property
     def arithmetic_version(self) -> int:
-        """The ``mcsm`` metadata's arithmetic version (1 for files that do not say)."""
+        """The ``mcsm`` metadata's arithmetic version (1 for files that do not say); known
+        once iteration has read the metadata record, at the file's start."""
         try:
             return int(self.metadata.get("mcsm", {}).get("arithmetic_version",
                                                           LEGACY_ARITHMETIC_VERSION))
