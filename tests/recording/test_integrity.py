@@ -450,12 +450,14 @@ def test_version_flag(script: str) -> None:
     assert f"arithmetic version {ARITHMETIC_VERSION}" in r.stdout
 
 
-def test_help_lists_the_exit_codes() -> None:
-    r = subprocess.run([sys.executable, "-m", "mcsm.cli", "replay", "--help"],
+@pytest.mark.parametrize("argv", [["replay", "--help"], ["--help"]])
+def test_help_lists_the_exit_codes(argv: list[str]) -> None:
+    r = subprocess.run([sys.executable, "-m", "mcsm.cli", *argv],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 0
     for code in range(7):
         assert f"\n  {code}  " in r.stdout
+    assert "in the order 1, 5, 4, 6" in r.stdout
 
 
 class _Tty(io.StringIO):
@@ -640,3 +642,35 @@ def test_serve_restore_migrates_a_recording_of_another_arithmetic(tmp_path: Path
     rep = replay(d.record)
     assert rep.identical and rep.complete and not rep.other_arithmetic
     assert rep.states["default"].seq == 9
+
+
+def test_replay_reports_the_first_exit_code_in_the_order_1_5_4_6(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Several conditions at once: a cut file of another arithmetic is 4 (cut), not 6; a
+    damaged one is 5; a cut file that diverges before the cut is 1."""
+    from tests.recording.test_recording import _rewrite
+
+    old = tmp_path / "old.mcap"  # indexed, with CRCs, of arithmetic version 1
+    monkeypatch.setattr("mcsm.log.writer.ARITHMETIC_VERSION", 1)
+    record_session(old, N, 20, seed=8808, checkpoint_every=3)
+    monkeypatch.undo()
+    assert mcsm_main(["replay", str(old), "--no-progress"]) == EXIT_OTHER_ARITHMETIC
+    cut_old = tmp_path / "cut-old.mcap"
+    cut_old.write_bytes(old.read_bytes()[: old.stat().st_size * 7 // 10])
+    assert mcsm_main(["replay", str(cut_old), "--no-progress"]) == EXIT_CUT
+    bad_old = tmp_path / "bad-old.mcap"
+    raw = bytearray(old.read_bytes())
+    raw[len(raw) // 2] ^= 0xFF  # inside a chunk: its CRC no longer matches
+    bad_old.write_bytes(bytes(raw))
+    assert mcsm_main(["replay", str(bad_old), "--no-progress"]) == EXIT_DAMAGED
+    gap_old = tmp_path / "gap-old.mcap"  # of version 1 too: a missing seq still diverges
+    monkeypatch.setattr("mcsm.log.writer.ARITHMETIC_VERSION", 1)
+    _rewrite(old, gap_old, "gap")
+    monkeypatch.undo()
+    assert mcsm_main(["replay", str(gap_old), "--no-progress"]) == EXIT_DIVERGED
+    shipped = Path(__file__).parents[2] / "recordings" / "loop-small.mcap"
+    diverged = tmp_path / "diverged.mcap"
+    _rewrite(shipped, diverged, "digest")  # seq 10's checkpoint says another digest
+    cut = tmp_path / "diverged-cut.mcap"
+    cut.write_bytes(diverged.read_bytes()[: diverged.stat().st_size * 8 // 10])
+    assert mcsm_main(["replay", str(cut), "--no-progress"]) == EXIT_DIVERGED
