@@ -133,11 +133,42 @@ def test_odometry_keyframes_by_hand() -> None:
     assert mapper.keyframe_name("base_link") == "base_link.2"
 
 
+def test_keyframe_increment_ids_shrinking_covariance_and_prefix() -> None:
+    """A keyframe increment's id depends on both its messages; a covariance that shrank
+    between keyframes gives an increment with none (negative growth clipped to 0, not an
+    error); ``frame_prefix`` names the mapper's frames."""
+    from mcsm.core import mean_and_cov
+
+    cov0 = np.diag([0.01, 0.01, 0.0, 0.0, 0.0, 1e-4])
+    far = YAW90.copy()
+    far[1] += 1.0
+
+    def increment(first: np.ndarray, second: np.ndarray, prefix: str = "") -> object:
+        m = MessageMapper(MappingOptions(frame_prefix=prefix))
+        m.map("/odom", msg("odom", "base_link", YAW90, first, 1), 200)
+        (k1,) = m.map("/odom", msg("odom", "base_link", far, second, 2), 200)
+        return k1
+
+    a, b = increment(cov0, 2 * cov0), increment(1.5 * cov0, 2 * cov0)
+    assert a.request_id != b.request_id  # type: ignore[attr-defined]
+    shrunk = increment(2 * cov0, cov0)
+    _, cov = mean_and_cov(shrunk.samples)  # type: ignore[attr-defined]
+    np.testing.assert_allclose(cov, 0.0, atol=1e-12)
+    named = increment(cov0, 2 * cov0, prefix="robot1")
+    assert (named.a, named.b) == ("robot1/base_link.0",  # type: ignore[attr-defined]
+                                  "robot1/base_link.1")
+
+
+INDEFINITE = np.eye(6)  # symmetric, no negative variance, but an eigenvalue of -1
+INDEFINITE[0, 1] = INDEFINITE[1, 0] = 2.0
+
+
 @pytest.mark.parametrize("frame,child,cov,why", [
     ("odom", "odom", ROS_COV, "both"),
     ("odom", "base link", ROS_COV, "frame id"),
     ("odom", "base", np.diag([-1.0, 1, 1, 1, 1, 1]), "negative variance"),
     ("odom", "base", np.diag([1.0, 1, 1, 1, 1, 1]) + np.eye(6, k=1), "symmetric"),
+    ("odom", "base", INDEFINITE, "semi-definite"),
 ])
 def test_invalid_messages(frame: str, child: str, cov: np.ndarray, why: str) -> None:
     with pytest.raises(MappingError, match=why):
