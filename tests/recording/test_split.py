@@ -423,3 +423,27 @@ def test_a_split_below_the_snapshot_size_gives_files_of_about_twice_it(tmp_path:
         assert inputs and snap > 1_000 and snap <= size / 2, (p.name, snap, size)
         # twice the bytes the file starts with, plus its summary (an index entry per input)
         assert 2 * snap < size < 3 * snap, (p.name, snap, size)
+
+
+def test_split_duration_starts_a_new_file_after_that_long(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``--split-duration S``: the first input after S seconds of a file (and once its inputs
+    outweigh its snapshot) starts the next file; the set replays as one."""
+    clock = [1000.0]
+    monkeypatch.setattr("mcsm.log.writer.time.monotonic", lambda: clock[0])
+    rec = Recorder(tmp_path / "run.mcap", split_s=60.0)
+    dr = Driver(rec, _state(), seed=7106, disk_every=0)
+    rec.config(dr.st, 5)
+    for k in range(20):  # (their bytes outweigh the schemas and config the file starts with)
+        dr.update(k)
+    assert rec.index == 0  # no time has passed: one file, however many inputs
+    clock[0] += 61.0
+    dr.update(20)
+    assert rec.index == 1  # the input after 60 s closed the file
+    clock[0] += 30.0  # 91 s after the first file opened, 30 s after the second
+    for k in range(21, 60):
+        dr.update(k)
+    assert rec.index == 1  # the new file's clock started at the split
+    dr.close()
+    assert [p.name for p in rec.paths] == ["run_0000.mcap", "run_0001.mcap"]
+    assert replay(rec.paths).identical
