@@ -66,9 +66,10 @@ class Recorder:
         the default
     split_bytes, split_s : start a new file once the current one holds this many bytes, or
         was opened this many seconds ago (0: never; ``mcsm serve --split-size`` and
-        ``--split-duration``). The check follows each input, so a file holds at least one
-        input and ends at a clean close; the next file starts with every map's config and a
-        snapshot (with the remembered ids and the retract window), so it replays on its own.
+        ``--split-duration``). The check follows each input, so every file but the last holds
+        at least one input and ends at a clean close; the next file starts with every map's
+        config and a snapshot (with the remembered ids and the retract window), so it replays
+        on its own.
         A file is never split before its inputs take as many bytes as the snapshots it
         starts with, so snapshots never take more than half of a split recording.
         The files share a set id and count up (the ``mcsm`` metadata's ``set`` and
