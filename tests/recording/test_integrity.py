@@ -674,3 +674,23 @@ def test_replay_reports_the_first_exit_code_in_the_order_1_5_4_6(
     cut = tmp_path / "diverged-cut.mcap"
     cut.write_bytes(diverged.read_bytes()[: diverged.stat().st_size * 8 // 10])
     assert mcsm_main(["replay", str(cut), "--no-progress"]) == EXIT_DIVERGED
+
+
+def test_an_unwritable_output_folder_is_refused_before_any_work(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """(Tests run as root, who may write anywhere: the folder's permission check is faked.)"""
+    import os
+
+    shipped = Path(__file__).parents[2] / "recordings" / "loop-small.mcap"
+    real_access = os.access
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    monkeypatch.setattr(os, "access", lambda p, mode, *a, **k: Path(p) != locked and
+                        real_access(p, mode, *a, **k))
+    for argv in (["recover", str(shipped), "-o", str(locked / "r.mcap")],
+                 ["plot", str(shipped), "-o", str(locked / "m.png")]):
+        assert mcsm_main(argv) == EXIT_USAGE, argv
+        err = capsys.readouterr().err
+        assert "is not writable" in err and str(locked) in err, err
+    assert not any(locked.iterdir())
