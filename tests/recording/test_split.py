@@ -317,6 +317,12 @@ def test_the_retract_window_stays_within_its_bytes_and_says_what_fell_out(
     dr.close()
     rep = replay(path)  # the same window on replay: the same retraction applies
     assert rep.identical and rep.states["default"].digest() == st.digest()
+    # the window comes from the recorded option, not the replaying machine's default
+    again = rep.states["default"]
+    assert again.history.max_bytes == budget
+    assert again.history.window_start == st.history.window_start
+    with pytest.raises(InvalidOperation, match=r"request 'u2' \(seq 3\) fell out"):
+        again.apply("retract", decode_input("retract", wire.encode_retract("r-x", "u2"), N))
     # a map larger than the whole budget has no window, and says so
     small = MapState("default", StochasticMap(N), retract_window_bytes=budget // 8)
     small.map = st.map
