@@ -10,12 +10,12 @@ from pathlib import Path
 import matplotlib
 import numpy as np
 import pytest
-from mcsm import cli
+from mcsm import StochasticMap, cli
 from mcsm.viz.plot import plot_map
 from mcsm.viz.scene import is_planar, load_map, map_view
 from scipy.stats import chi2
 
-from tests.viz.conftest import Recording, build_map
+from tests.viz.conftest import Recording, build_map, planar_at
 
 matplotlib.use("Agg")
 
@@ -282,3 +282,25 @@ def test_cli_plot_of_a_diverging_recording_warns(tmp_path: Path,
     assert "mcsm plot: warning: replay diverged from the recording; showing the map as " \
            "replayed up to there" in err and "seq 10" in err, err
     assert (tmp_path / "d.png").stat().st_size > 0
+
+
+def test_map_choice_and_the_sample_cap(tmp_path: Path, capsys: pytest.CaptureFixture[str]
+                                       ) -> None:
+    """--map: a recording with several maps and no `default` must name one (exit 2 naming
+    them), the only map needs no name; --samples draws at most 250 per frame, evenly strided
+    rows."""
+    shipped = Path(__file__).parents[2] / "recordings"
+    out = tmp_path / "m.png"
+    assert cli.main(["plot", str(shipped / "two-maps.mcap"), "-o", str(out)]) == 2
+    assert "holds maps a, b: choose one with --map" in capsys.readouterr().err
+    assert cli.main(["plot", str(shipped / "two-maps.mcap"), "-o", str(out), "--map", "b"]) == 0
+    assert cli.main(["plot", str(shipped / "loop-small.mcap"), "-o", str(tmp_path / "o.png")]) \
+        == 0  # its only map, `default`
+    rng = np.random.default_rng(20261130)
+    m = StochasticMap(1000)
+    for k in range(3):
+        m.update(f"x{k}", f"x{k + 1}", planar_at(rng, 1000, [1.0, 0.0], 0.3))
+    mv = map_view(m, map_name="default", seq=3, samples=True)
+    res = plot_map(mv, tmp_path / "s.png", samples=True)
+    drawn = [f for f in mv.frames if f.samples is not None]
+    assert drawn and res.n_sample_points == 250 * len(drawn)
