@@ -230,3 +230,17 @@ def test_commands_given_a_foxglove_export_say_not_an_mcsm_recording(
         assert f"{scene}: not an mcsm recording (its first message is on /mcsm/default/" in err
     assert not out.exists()
     assert cli.main(["replay", str(recording.path)]) == 0  # a recording still is one
+
+
+@pytest.mark.parametrize("status, level", [("accepted", "Info"), ("reinstated", "Info"),
+                                           ("pending", "Warning"), ("rejected", "Warning"),
+                                           ("retracted", "Warning")])
+def test_log_levels_of_verdicts(status: str, level: str) -> None:
+    """docs/visualising.md: a held, refused or retracted constraint is a WARNING line."""
+    from mcsm.viz.foxglove_scene import verdict_text
+
+    got, text = verdict_text(7, "update", "loop_closure", ("x0", "x5"),
+                             {"status": status, "nis": 3.2, "dof": 3, "threshold": 11.3},
+                             "rid")
+    assert got == level
+    assert text.startswith("seq 7 update x0 -> x5: loop_closure") and text.endswith(" id rid")
