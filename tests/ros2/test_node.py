@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -187,3 +188,28 @@ def test_the_built_tfmessage_has_the_real_type_hash(ros_env: dict[str, str]) -> 
     doc = (Path(__file__).parents[2] / "docs" / "ros2.md").read_text()
     assert real in doc
     assert r.stdout.split() == ["tf2_msgs/msg/TFMessage", real]
+
+
+def test_node_serve_runs_its_own_server_and_records(tmp_path: Path,
+                                                    ros_env: dict[str, str]) -> None:
+    """``mcsm ros2 --serve``: the node with a server in its process on a free loopback port;
+    it says where, a client reaches it there, and SIGTERM closes a recording that replays."""
+    from mcsm.log.replay import replay
+
+    record = tmp_path / "node.mcap"
+    node = McsmProcess(["ros2", "--serve", "--samples", "64", "--record", str(record)],
+                       ready="mcsm ros2: serving map", env=ros_env,
+                       log_path=tmp_path / "node.log", ready_timeout_s=60.0)
+    with node:
+        said = node.ready_line
+        assert said.endswith(f", recording to {record}"), said
+        endpoint = said.split("serving map 'default' on ")[1].split(",")[0]
+        assert endpoint.startswith("tcp/127.0.0.1:")
+        ready = node.lines.get(timeout=60)
+        assert ready is not None and ready.startswith("mcsm ros2: ready"), ready
+        with MapClient(connect=endpoint) as c:
+            c.update("a", "b", np.tile([1.0, 0, 0, 1, 0, 0, 0], (64, 1)))
+            assert c.info().seq == 1
+        assert node.stop(signal.SIGTERM) == 0, node.log_tail(40)
+    rep = replay(record)
+    assert rep.identical and rep.complete and rep.n_inputs == 1
