@@ -694,3 +694,16 @@ def test_an_unwritable_output_folder_is_refused_before_any_work(
         err = capsys.readouterr().err
         assert "is not writable" in err and str(locked) in err, err
     assert not any(locked.iterdir())
+
+
+def test_ctrl_c_is_one_line_and_exit_130(monkeypatch: pytest.MonkeyPatch,
+                                         capsys: pytest.CaptureFixture[str]) -> None:
+    """Ctrl-C in a long replay (or recover, export, ...): `interrupted`, exit 130, no
+    traceback."""
+    def interrupted(*_: object, **__: object) -> object:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("mcsm.log.replay.replay", interrupted)  # (replay_cmd imports it)
+    shipped = Path(__file__).parents[2] / "recordings" / "loop-small.mcap"
+    assert mcsm_main(["replay", str(shipped), "--no-progress"]) == 130
+    assert capsys.readouterr().err == "mcsm replay: interrupted\n"

@@ -33,6 +33,7 @@ EXIT_CODES_HELP = """exit codes:
   4  the recording is cut (no clean close): inspect/replay used every complete record
   5  the recording is damaged (CRC mismatch or undecodable record): read up to the damage
   6  replay: recorded by another arithmetic version of the core; digests not comparable
+130  interrupted (Ctrl-C); serve stops cleanly on SIGINT and exits 0
 (replay reports the first that applies in the order 1, 5, 4, 6)"""
 
 

@@ -380,6 +380,9 @@ def main(argv: list[str] | None = None) -> int:
 
             return run_viz(args)
         return inspect_cmd(args)
+    except KeyboardInterrupt:  # Ctrl-C in a long replay, recover or export: no traceback
+        print(f"mcsm {args.command}: interrupted", file=sys.stderr)
+        return 130
     except BrokenPipeError:  # `mcsm inspect FILE | head`: the reader went away
         import os
 
