@@ -79,3 +79,39 @@ def test_ros_parameter_defaults_in_docs_are_the_nodes() -> None:
     assert {"odometry_topics", "constraint_topics", "landmark_topics", "keyframe_distance_m",
             "keyframe_angle_rad", "reorder_window_s", "publish_period_s",
             "map_frame"} <= set(checked)
+
+
+def test_core_api_listing_states_the_constructors_and_policies_defaults() -> None:
+    """docs/core-api.md's listing: the first choice of every ``StochasticMap`` keyword is its
+    default, and the Policy values it spells out are the shipped ones."""
+    import inspect
+
+    from mcsm import StochasticMap
+    from mcsm.core import relinearize
+    from mcsm.core.relinearize import Policy
+    from mcsm.core.smap import DEFAULT_POLICY
+
+    text = (ROOT / "docs" / "core-api.md").read_text()
+    block = text[text.index("m = StochasticMap(n_samples,"):]
+    block = block[:block.index("\n#")]  # the call, up to the comments under it
+    names = {"DEFAULT_POLICY": DEFAULT_POLICY}
+    stated = {}
+    for m in re.finditer(r"(\w+)=((?:\{[^}]*\}|[^|,)\n])+)", block):
+        name, first = m.groups()
+        stated[name] = eval(first.strip(), {}, names)  # noqa: S307 - the docs' literal
+    params = inspect.signature(StochasticMap).parameters
+    assert set(stated) == set(params) - {"n_samples"}
+    for name, value in stated.items():
+        assert params[name].default == value, (name, value, params[name].default)
+    # the policies, from the comments (their "# " taken off, lines joined)
+    prose = " ".join(line.lstrip("# ") for line in text.splitlines() if line.startswith("#"))
+    calls = {m.group(1): m.group(2) for m in re.finditer(
+        r"(DEFAULT_POLICY|REPAIR_ONLY|RECOMMENDED|relinearize\.Policy)\s*=?\s*(Policy\([^)]*\)"
+        r"|\([^)]*\))", prose)}
+    want = {"DEFAULT_POLICY": DEFAULT_POLICY, "REPAIR_ONLY": relinearize.REPAIR_ONLY,
+            "RECOMMENDED": relinearize.RECOMMENDED, "relinearize.Policy": Policy()}
+    assert set(calls) == set(want), calls
+    for name, call in calls.items():
+        got = eval(call if call.startswith("Policy") else f"Policy{call}",  # noqa: S307
+                   {"Policy": Policy, "None": None, "True": True, "False": False})
+        assert got == want[name], (name, call)

@@ -299,3 +299,35 @@ def test_planar_loop_closures_count_three_dof_and_keep_dead_dimensions_zero(spac
     # NIS/dof of one closure is about chi2(3)/3: spread sqrt(2/3); plus the 1/N-order bias of
     # the sample S⁻¹ (about (N - 1) / (N - 5) - 1 = 2 %)
     assert abs(np.mean(nis) - 1.0) < 4.0 * np.sqrt(2.0 / 3.0) / np.sqrt(trials) + 0.03
+
+
+@pytest.mark.parametrize(("method", "space"), METHODS)
+def test_portable_is_false_only_for_paper_in_the_quaternion_space(method: str,
+                                                                  space: str) -> None:
+    assert StochasticMap(N, method=method, space=space).portable == \
+        ((method, space) != ("paper", "quaternion"))
+
+
+def test_results_are_copies_and_failing_calls_change_nothing() -> None:
+    """query, edges and marginal hand out new arrays (writing to them leaves the map as it
+    was); a failing import (a name taken, even only its second frame's), relinearize or
+    export of an unknown frame leaves the map bit-identical."""
+    rng = np.random.default_rng(309)
+    m = StochasticMap(N)
+    m.update("a", "b", _cloud(rng))
+    m.update("b", "c", _cloud(rng))
+    before = m.state_digest()
+    for got in (m.query("a", "c"), m.query("a", "b"), m.edges("a"), m.marginal("a", "c")[0]):
+        got[...] = 0.0
+    assert m.state_digest() == before
+    other = StochasticMap(N)
+    other.update("q", "c", _cloud(rng))  # "c" taken: the submap's second frame
+    sub = m.export_component("a")
+    taken = other.state_digest()
+    with pytest.raises(FrameExists):
+        other.import_component(sub)
+    assert other.state_digest() == taken and other.frames() == ["q", "c"]
+    for call in (lambda: m.relinearize("nope"), lambda: m.export_component("nope")):
+        with pytest.raises(McsmError):
+            call()
+        assert m.state_digest() == before
