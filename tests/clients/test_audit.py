@@ -112,3 +112,11 @@ def test_when_to_audit() -> None:
     assert got == [False, False, False, True]
     with pytest.raises(ValueError):
         Auditor(retract_above=0.9)
+    # the documented defaults: every 50 closures, or 5 of the last 10 rejected, at most once
+    # per 10
+    d = Auditor()
+    assert [d.observe("accepted") for _ in range(50)] == [False] * 49 + [True]
+    got = [d.observe(s) for s in ["rejected"] * 5 + ["accepted"] * 4 + ["rejected"]]
+    assert got == [False] * 9 + [True]  # 6 of the last 10, but not before 10 since the last
+    got = [d.observe("rejected") for _ in range(10)]
+    assert got == [False] * 9 + [True]

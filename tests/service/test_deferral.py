@@ -229,8 +229,9 @@ def test_retract_and_reinstate_stay_exact_with_deferral() -> None:
     reqs[first] = _wrong(reqs[first])
     st = _state()
     _feed(st, reqs[:second])
-    with pytest.raises(InvalidOperation, match="pending"):
-        st.apply("retract", wire.RetractRequest("x1", f"r{first}"), time_ns=0)
+    for op in ("retract", "reinstate"):  # a held closure is neither in nor out yet
+        with pytest.raises(InvalidOperation, match="pending"):
+            st.apply(op, wire.RetractRequest(f"x1-{op}", f"r{first}"), time_ns=0)
     _feed(st, reqs[second:])
     accepted = next(f"r{k}" for k in loops[2:] if _status(st, f"r{k}") == "accepted")
 

@@ -128,3 +128,29 @@ def test_a_reinstated_update_stays_in_when_an_earlier_one_is_retracted() -> None
         if rid != "true1":
             m.update(a, b, x, trusted=rid == "wrong")
     assert st.digest() == m.state_digest()
+
+
+def test_a_true_closure_pushed_out_by_a_wrong_one_comes_back_by_itself() -> None:
+    """docs/outliers.md: later inputs go through the gate again when a closure is retracted,
+    so a true closure a (trusted) wrong one had pushed out is accepted again."""
+    from mcsm import wire
+    from mcsm.map.state import MapState
+
+    ops = _inputs(np.random.default_rng(20261126))
+    st = MapState("default", StochasticMap(N, gate=0.99), snapshot_every=4, snapshots_kept=8)
+    for rid, a, b, x, trusted in ops:
+        if rid == "wrong":
+            x = x.copy()
+            x[:, 1] += 7.0  # 10 m off in all: enough to push true2 out of the gate
+        st.apply("update", wire.UpdateRequest(rid, a, b, x, trusted=trusted), time_ns=0)
+
+    def status(rid: str) -> str:
+        v = st.verdict_of(rid).verdict
+        assert v is not None
+        return v.status
+
+    assert status("true2") == "rejected"
+    st.apply("retract", wire.RetractRequest("r1", "wrong"), time_ns=0)
+    assert (status("wrong"), status("true2")) == ("retracted", "accepted")
+    st.apply("reinstate", wire.RetractRequest("r2", "wrong"), time_ns=0)
+    assert (status("wrong"), status("true2")) == ("reinstated", "rejected")
