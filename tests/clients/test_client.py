@@ -124,7 +124,8 @@ def test_open_without_server_times_out_quickly() -> None:
     assert time.monotonic() - t0 < 10.0
 
 
-def test_silence_is_retried_with_the_same_id_until_the_full_timeout() -> None:
+def test_silence_is_retried_with_the_same_id_until_the_full_timeout(
+        capsys: pytest.CaptureFixture[str]) -> None:
     """A server (token + queryable) that stays silent on the first attempt and answers the
     second: the client sends the very same payload (same request id) again and returns the
     answer. A request never answered fails after its full timeout (not milliseconds), as
@@ -158,6 +159,10 @@ def test_silence_is_retried_with_the_same_id_until_the_full_timeout() -> None:
             with pytest.raises(NoPermittedServer, match="no permitted server"):
                 c.remove("a")
             assert 1.0 <= time.monotonic() - t0 < 6.0
+            from mcsm_client.cli import main as client_main  # the CLI: exit 3, saying which
+
+            assert client_main(["remove", "a", "--connect", ep, "--timeout-s", "1"]) == 3
+            assert "no permitted server" in capsys.readouterr().err
             tok.undeclare()
             deadline = time.monotonic() + 10
             while c.servers(0.2) and time.monotonic() < deadline:
@@ -459,7 +464,43 @@ def test_server_flags_before_or_after_serve() -> None:
     assert vars(before) == vars(after)
 
 
-def test_slow_server_gives_timeout_after_the_full_deadline() -> None:
+def test_not_replicated_is_retried_with_the_same_id() -> None:
+    """A server that answers NotReplicated (retryable: it may not acknowledge now) and then
+    an ack: the client sends the very same request id again and returns the ack."""
+    from mcsm.errors import NotReplicated
+
+    ep = free_endpoint()
+    srv = zenoh.open(server_config(ep))
+    seen: list[str] = []
+
+    def on_query(q: zenoh.Query) -> None:
+        req = wire.decode_update(q.payload.to_bytes() if q.payload else b"", None)
+        seen.append(req.request_id)
+        if len(seen) == 1:
+            q.reply_err(wire.encode_error(NotReplicated("default", "no lease yet"),
+                                          req.request_id), encoding=wire.ENCODING)
+        else:
+            q.reply(q.key_expr, wire.encode_ack(wire.Ack(req.request_id, 1, "update",
+                                                         "new_component", req.a,
+                                                         (req.a, req.b),
+                                                         server=str(srv.zid()))))
+        q.drop()
+
+    qa = srv.declare_queryable("mcsm/default/update", on_query)
+    tok = srv.liveliness().declare_token(f"mcsm/default/alive/{srv.zid()}")
+    try:
+        with MapClient(connect=ep, timeout_s=5.0) as c:
+            ack = c.update("a", "b", at(np.random.default_rng(6603), [1, 0, 0]))
+        assert len(seen) == 2 and seen[0] == seen[1] == ack.request_id
+        assert ack.kind == "new_component"
+    finally:
+        tok.undeclare()
+        qa.undeclare()
+        srv.close()
+
+
+def test_slow_server_gives_timeout_after_the_full_deadline(
+        capsys: pytest.CaptureFixture[str]) -> None:
     """A live server that holds every request past the deadline: plain Timeout (not NoServer,
     not NoPermittedServer), raised after the call's own timeout, naming it."""
     ep = free_endpoint()
@@ -474,6 +515,11 @@ def test_slow_server_gives_timeout_after_the_full_deadline() -> None:
                 c.info()
             assert 1.5 <= time.monotonic() - t0 < 6.0
             assert type(exc.value) is Timeout and "alive but did not answer" in str(exc.value)
+        # the CLI: exit 3, and the line says which timeout it was
+        from mcsm_client.cli import main as client_main
+
+        assert client_main(["info", "--connect", ep, "--timeout-s", "1"]) == 3
+        assert "alive but did not answer" in capsys.readouterr().err
     finally:
         for q in held:
             q.drop()

@@ -30,12 +30,16 @@ def test_audit_retracts_a_burst_through_the_server(tmp_path: Path, daemons: list
         for r in recs:  # the burst forced in (trusted): wrong closures the gate let through
             c.update(r.a, r.b, r.samples, request_id=f"r{r.request_id}",
                      trusted=r.request_id in burst)
+        before = c.info()
     let_through = list(burst)
     conn = ["--connect", d.endpoint]
     assert main(["audit", str(d.record), "--json", *conn]) == 0
     dry = json.loads(capsys.readouterr().out)
     assert {r["request_id"] for r in dry["decisions"] if r["action"] == "retract"} \
         >= {f"r{k}" for k in let_through}
+    with MapClient(connect=d.endpoint, timeout_s=30.0) as c:  # without --apply: no change
+        after = c.info()
+    assert (after.seq, after.digest) == (before.seq, before.digest)
     assert main(["audit", str(d.record), "--apply", "--json", *conn]) == 0
     done = json.loads(capsys.readouterr().out)
     retracted = {r["request_id"] for r in done["decisions"] if r.get("verdict") == "retracted"}
