@@ -169,3 +169,33 @@ def test_serve_record_refuses_an_existing_file_and_a_missing_folder(
     assert mcsm_main(["serve", "--record", str(typo)]) == 2
     assert f"its folder {typo.parent} does not exist" in capsys.readouterr().err
     assert not typo.parent.exists() and old.read_bytes() == b""
+
+
+def test_replication_flags_are_checked_before_anything_starts(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """docs/fleet.md: --log-max-age must hold --id-ttl-s (the log's de-duplication window);
+    --nats-auth needs --nats; and a server without --nats imports nothing of NATS."""
+    import subprocess
+    import sys
+
+    from mcsm.cli import main as mcsm_main
+
+    monkeypatch.chdir(tmp_path)
+    listen = ["--listen", f"tcp/127.0.0.1:{free_port()}"]
+    assert mcsm_main(["serve", *listen, "--nats", "nats://127.0.0.1:1", "--log-max-age", "10",
+                      "--id-ttl-s", "600"]) == 2
+    assert "--log-max-age 10 is below --id-ttl-s 600" in capsys.readouterr().err
+    assert mcsm_main(["serve", *listen, "--nats-auth", "x.json"]) == 2
+    assert "--nats-auth needs --nats URL" in capsys.readouterr().err
+    assert not list(tmp_path.rglob("*.mcap"))
+    code = ("import sys\n"
+            "from mcsm.cli import build_parser\n"
+            "from mcsm.cli.serve_cmd import _nats_options\n"
+            "import mcsm.serve.server\n"
+            "assert _nats_options(build_parser().parse_args(['serve'])) is None\n"
+            "print(sorted(m for m in sys.modules if m.split('.')[0] == 'nats'"
+            " or m == 'mcsm.serve.replication'))\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 0 and r.stdout.strip() == "[]", r.stdout + r.stderr

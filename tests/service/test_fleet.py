@@ -62,6 +62,7 @@ def test_two_servers_behind_one_router(tmp_path: Path, daemons: list[Daemon],
             capture_output=True, text=True, timeout=60, cwd=tmp_path)
         assert third.returncode == 2
         assert "already served by server" in third.stderr
+        assert "start this server with --standby-of a" in third.stderr
         for d in (a, b):
             assert d.stop(signal.SIGINT) == 0, d.log_text()
     finally:
