@@ -159,7 +159,8 @@ def test_robot_writes_only_its_own_namespace(dep: Deployment) -> None:
             dep.client("robot2", "ns", namespace="robot2") as r2:
         r1.update("robot1/base", "robot1/p1", x())
         r2.update("robot2/base", "robot2/p1", x())
-        seq = r1.info().seq
+        seq, digest = r1.info().seq, r1.info().digest
+        recorded = dep.daemon.record.stat().st_size
         # observed from robot2's frame, through robot1's own key: refused by the server
         with pytest.raises(Forbidden, match="another namespace"):
             r1.update("robot2/p1", "robot2/p2", x())
@@ -169,7 +170,11 @@ def test_robot_writes_only_its_own_namespace(dep: Deployment) -> None:
             r1.remove("robot2/p1")
         with pytest.raises(Forbidden, match="new frame"):  # no squatting on robot2's names
             r1.update("robot1/p1", "robot2/p9", x())
-        assert r1.info().seq == seq
+        with pytest.raises(Forbidden):  # a frame in no namespace: the admin's alone
+            r1.update("world", "robot1/p7", x())
+        # nothing applied, nothing recorded
+        assert (r1.info().seq, r1.info().digest) == (seq, digest)
+        assert dep.daemon.record.stat().st_size == recorded
         # robot2's or the admin's keys with robot1's identity: denied by the access control
         for kw in ({"namespace": "robot2"}, {}):
             with dep.client("robot1", "ns", timeout_s=DENIED_S, **kw) as wrong:
