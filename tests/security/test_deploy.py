@@ -189,6 +189,21 @@ def test_robot_writes_only_its_own_namespace(dep: Deployment) -> None:
         assert r2.info().seq == seq + 2
 
 
+def test_a_longer_namespace_uses_its_first_segments_keys(
+        dep: Deployment, capsys: pytest.CaptureFixture[str]) -> None:
+    """docs/deploy.md: ``--namespace robot1/sim1`` with robot1's identity writes frames
+    robot1/sim1/... through robot1's keys."""
+    from mcsm_client.cli import main as client_main
+
+    code = client_main(["sim", "--iterations", "3", "--landmarks", "5", "--json",
+                        "--connect", dep.endpoint, "--map", "ns", "--zenoh-config",
+                        str(dep.conf("robot1")), "--namespace", "robot1/sim1"])
+    assert code == 0, capsys.readouterr().err
+    with dep.client("admin", "ns") as admin:
+        frames = admin.info().frames
+    assert any(f.startswith("robot1/sim1/") for f in frames), frames
+
+
 def test_admin_imports_a_submap_robots_cannot(dep: Deployment) -> None:
     rng = np.random.default_rng(1203)
     with dep.client("admin", "imp") as admin, dep.client("admin", "imp2") as admin2:
