@@ -115,3 +115,21 @@ def test_core_api_listing_states_the_constructors_and_policies_defaults() -> Non
         got = eval(call if call.startswith("Policy") else f"Policy{call}",  # noqa: S307
                    {"Policy": Policy, "None": None, "True": True, "False": False})
         assert got == want[name], (name, call)
+
+
+def test_deploy_md_states_the_timeout_and_id_memory_defaults() -> None:
+    """docs/deploy.md: every call's deadline defaults to 10 s (library and CLI); request ids
+    are remembered for 10 minutes, at most 100 000 per map (the server's flags too)."""
+    import inspect
+
+    from mcsm.map.state import DEFAULT_ID_TTL_S, DEFAULT_LRU
+    from mcsm_client.client import DEFAULT_TIMEOUT_S, MapClient
+
+    text = (ROOT / "docs" / "deploy.md").read_text()
+    assert "(`timeout_s`, default 10 s)" in text
+    assert "remembered for 10 minutes (`--id-ttl-s`, at most 100 000 ids per map" in text
+    assert inspect.signature(MapClient).parameters["timeout_s"].default == 10.0
+    assert DEFAULT_TIMEOUT_S == 10.0  # the CLI's --timeout-s default, and its help's
+    assert (DEFAULT_ID_TTL_S, DEFAULT_LRU) == (600.0, 100_000)
+    served = mcsm_parser().parse_args(["serve"])
+    assert (served.id_ttl_s, served.id_memory) == (600.0, 100_000)

@@ -61,6 +61,7 @@ from mcsm_client.cli_map import (
     cmd_watch,
 )
 from mcsm_client.cli_run import cmd_multirobot, cmd_play, cmd_play_rosbag, cmd_sim
+from mcsm_client.client import DEFAULT_TIMEOUT_S
 
 JSON_HELP = "print the result as one JSON object"
 NO_PROGRESS_HELP = "no progress bar or progress lines on stderr"
@@ -274,7 +275,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     fill_connection_defaults(args)
     if not hasattr(args, "timeout_s"):
-        args.timeout_s = 10.0
+        args.timeout_s = DEFAULT_TIMEOUT_S
     prog = f"mcsm-client {args.command}"
     try:
         if not args.timeout_s > 0:

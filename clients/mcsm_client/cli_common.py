@@ -18,6 +18,8 @@ from typing import Any
 import numpy as np
 from mcsm.serve.connect import add_connection_args, client_kwargs
 
+from mcsm_client.client import DEFAULT_TIMEOUT_S
+
 EXIT_OK, EXIT_REFUSED, EXIT_USAGE, EXIT_TIMEOUT, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
 EXIT_GATE_REJECTED = 4  # update: recorded and acknowledged, but the gate refused it
 
@@ -29,7 +31,8 @@ class UsageError(Exception):
 def _add_common(p: argparse.ArgumentParser) -> None:
     add_connection_args(p, suppress=True)
     p.add_argument("--timeout-s", type=float, default=argparse.SUPPRESS,
-                   help="how long one request waits for the server, seconds (default 10)")
+                   help="how long one request waits for the server, seconds (default "
+                        f"{DEFAULT_TIMEOUT_S:g})")
 
 
 def _add_in_process(p: argparse.ArgumentParser) -> None:
