@@ -124,6 +124,13 @@ def test_open_without_server_times_out_quickly() -> None:
     assert time.monotonic() - t0 < 10.0
 
 
+def _ack_new_component(q: zenoh.Query, req: wire.UpdateRequest, srv: zenoh.Session) -> None:
+    """A fake server's ack of an update that made a new component."""
+    q.reply(q.key_expr, wire.encode_ack(wire.Ack(req.request_id, 1, "update", "new_component",
+                                                 req.a, (req.a, req.b),
+                                                 server=str(srv.zid()))))
+
+
 def test_silence_is_retried_with_the_same_id_until_the_full_timeout(
         capsys: pytest.CaptureFixture[str]) -> None:
     """A server (token + queryable) that stays silent on the first attempt and answers the
@@ -141,10 +148,7 @@ def test_silence_is_retried_with_the_same_id_until_the_full_timeout(
             seen.append(req.request_id)
             first = len(seen) == 1
         if not first:
-            q.reply(q.key_expr, wire.encode_ack(wire.Ack(req.request_id, 1, "update",
-                                                         "new_component", req.a,
-                                                         (req.a, req.b),
-                                                         server=str(srv.zid()))))
+            _ack_new_component(q, req, srv)
         q.drop()
 
     qa = srv.declare_queryable("mcsm/default/update", on_query)
@@ -480,10 +484,7 @@ def test_not_replicated_is_retried_with_the_same_id() -> None:
             q.reply_err(wire.encode_error(NotReplicated("default", "no lease yet"),
                                           req.request_id), encoding=wire.ENCODING)
         else:
-            q.reply(q.key_expr, wire.encode_ack(wire.Ack(req.request_id, 1, "update",
-                                                         "new_component", req.a,
-                                                         (req.a, req.b),
-                                                         server=str(srv.zid()))))
+            _ack_new_component(q, req, srv)
         q.drop()
 
     qa = srv.declare_queryable("mcsm/default/update", on_query)

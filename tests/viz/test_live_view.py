@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import contextlib
 import json
 import os
 import queue
@@ -19,6 +20,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -238,72 +240,67 @@ def node_viewer(url: str, node_modules: Path, ops: list[Any], workdir: Path) -> 
     assert seen[:2] == ["open", "serverInfo"], seen[:5]
 
 
-@pytest.mark.slow
-def test_live_view_serves_the_changing_map_to_python_clients(tmp_path: Path) -> None:
-    """Both subprotocols, from a client written from the protocol (no node needed); the view
-    never writes to the map; SIGTERM stops it with exit 0."""
+@contextlib.contextmanager
+def viewed_map(tmp_path: Path, name: str,
+               seed: int) -> Iterator[tuple[Any, Any, subprocess.Popen[str], str, list[Any],
+                                           np.random.Generator]]:
+    """A server with the first 9 default operations applied and ``mcsm view`` on it: yields
+    (daemon, client, view, url, ops, rng); the view and the server are stopped after."""
     from mcsm_client.client import MapClient
 
-    rng = np.random.default_rng(20261124)
+    rng = np.random.default_rng(seed)
     ops = default_ops(rng)[:9]
-    d = start_daemon(tmp_path, "--samples", str(N), name="live")
+    d = start_daemon(tmp_path, "--samples", str(N), name=name)
     view: subprocess.Popen[str] | None = None
     try:
         with MapClient(connect=d.endpoint, timeout_s=30) as c:
             for op in ops:
                 apply(c, op)
             view, url = start_view(tmp_path, d.endpoint, free_port())
-            ops = asyncio.run(python_viewer(url, SUBPROTOCOL, c, rng, ops, change=False))
-            ops = asyncio.run(python_viewer(url, OLD_SUBPROTOCOL, c, rng, ops))
-            # a map nobody serves, and the WebSocket port already taken: one line, exit 2
-            port = url.rsplit(":", 1)[1]
-            for args, needle in [
-                    (["--map", "nope"], f"mcsm view: no server answers for map 'nope' at "
-                                        f"{d.endpoint} within 1 s"),
-                    (["--foxglove-port", port], "mcsm view: cannot start the Foxglove "
-                                                f"WebSocket server on 127.0.0.1:{port}")]:
-                p = subprocess.run([sys.executable, "-m", "mcsm.cli", "view", "--connect",
-                                    d.endpoint, "--timeout", "1", *args], capture_output=True,
-                                   text=True, timeout=120)
-                assert p.returncode == 2, p.stderr
-                err = p.stderr.strip().splitlines()
-                assert err[-1].startswith(needle) and "Traceback" not in p.stderr, p.stderr
-            assert c.info().seq == len(ops)  # every change is the test's: the view wrote none
-        view.send_signal(signal.SIGTERM)
-        assert view.wait(timeout=30) == 0, (tmp_path / "view.log").read_text()
-        log = (tmp_path / "view.log").read_text()
-        assert "Traceback" not in log
-        assert "connected with foxglove.websocket.v1" in log  # the relay let the old name in
+            yield d, c, view, url, ops, rng
     finally:
         if view is not None and view.poll() is None:
             view.kill()
             view.wait(timeout=10)
         d.stop(signal.SIGINT)
+
+
+@pytest.mark.slow
+def test_live_view_serves_the_changing_map_to_python_clients(tmp_path: Path) -> None:
+    """Both subprotocols, from a client written from the protocol (no node needed); the view
+    never writes to the map; SIGTERM stops it with exit 0."""
+    with viewed_map(tmp_path, "live", 20261124) as (d, c, view, url, ops, rng):
+        ops = asyncio.run(python_viewer(url, SUBPROTOCOL, c, rng, ops, change=False))
+        ops = asyncio.run(python_viewer(url, OLD_SUBPROTOCOL, c, rng, ops))
+        # a map nobody serves, and the WebSocket port already taken: one line, exit 2
+        port = url.rsplit(":", 1)[1]
+        for args, needle in [
+                (["--map", "nope"], f"mcsm view: no server answers for map 'nope' at "
+                                    f"{d.endpoint} within 1 s"),
+                (["--foxglove-port", port], "mcsm view: cannot start the Foxglove "
+                                            f"WebSocket server on 127.0.0.1:{port}")]:
+            p = subprocess.run([sys.executable, "-m", "mcsm.cli", "view", "--connect",
+                                d.endpoint, "--timeout", "1", *args], capture_output=True,
+                               text=True, timeout=120)
+            assert p.returncode == 2, p.stderr
+            err = p.stderr.strip().splitlines()
+            assert err[-1].startswith(needle) and "Traceback" not in p.stderr, p.stderr
+        assert c.info().seq == len(ops)  # every change is the test's: the view wrote none
+        view.send_signal(signal.SIGTERM)
+        assert view.wait(timeout=30) == 0, (tmp_path / "view.log").read_text()
+    log = (tmp_path / "view.log").read_text()
+    assert "Traceback" not in log
+    assert "connected with foxglove.websocket.v1" in log  # the relay let the old name in
 
 
 def test_live_view_serves_npm_foxglove_client(tmp_path: Path, node_modules: Path) -> None:
     """npm's @foxglove/ws-protocol FoxgloveClient in its default setting; SIGINT stops the
     view with exit 0."""
-    from mcsm_client.client import MapClient
-
-    rng = np.random.default_rng(20261125)
-    ops = default_ops(rng)[:9]
-    d = start_daemon(tmp_path, "--samples", str(N), name="live-npm")
-    view: subprocess.Popen[str] | None = None
-    try:
-        with MapClient(connect=d.endpoint, timeout_s=30) as c:
-            for op in ops:
-                apply(c, op)
-            view, url = start_view(tmp_path, d.endpoint, free_port())
-            node_viewer(url, node_modules, ops, tmp_path)
+    with viewed_map(tmp_path, "live-npm", 20261125) as (_, _, view, url, ops, _):
+        node_viewer(url, node_modules, ops, tmp_path)
         view.send_signal(signal.SIGINT)
         assert view.wait(timeout=30) == 0, (tmp_path / "view.log").read_text()
-        assert "Traceback" not in (tmp_path / "view.log").read_text()
-    finally:
-        if view is not None and view.poll() is None:
-            view.kill()
-            view.wait(timeout=10)
-        d.stop(signal.SIGINT)
+    assert "Traceback" not in (tmp_path / "view.log").read_text()
 
 
 def test_view_user_mistakes_exit_2_with_one_line(tmp_path: Path) -> None:
