@@ -26,12 +26,18 @@ def test_dedup_before_expected_sequence_and_lease_expiry(tmp_path: Path) -> None
     async def run(urls: list[str]) -> None:
         nc = await nats.connect(servers=urls)
         js = nc.jetstream()
+        async def elected(stream: str) -> None:
+            """A new R = 3 stream (a bucket's too) elects its leader: until then a publish
+            finds no responder (no publish before; a loaded host takes a while)."""
+            for _ in range(400):
+                if (await js.stream_info(stream)).cluster.leader:
+                    return
+                await asyncio.sleep(0.05)
+            raise AssertionError(f"stream {stream} elected no leader in 20 s")
+
         await js.add_stream(StreamConfig(name="T", subjects=["t"], num_replicas=3,
                                          duplicate_window=60))
-        for _ in range(200):  # a new R = 3 stream elects its leader (no publish before)
-            if (await js.stream_info("T")).cluster.leader:
-                break
-            await asyncio.sleep(0.05)
+        await elected("T")
 
         def hdr(mid: str, last: int) -> dict[str, str]:
             return {"Nats-Msg-Id": mid, "Nats-Expected-Last-Sequence": str(last)}
@@ -55,6 +61,7 @@ def test_dedup_before_expected_sequence_and_lease_expiry(tmp_path: Path) -> None
         assert (await js.stream_info("T")).state.messages == 2
         kv = await js.create_key_value(KeyValueConfig(bucket="L", ttl=1.0, history=1,
                                                       replicas=3))
+        await elected("KV_L")
         rev = await kv.create("m", b"A")
         try:
             await kv.create("m", b"B")
@@ -75,8 +82,10 @@ def test_dedup_before_expected_sequence_and_lease_expiry(tmp_path: Path) -> None
             raise AssertionError("an expired holder renewed its lease")
         except KeyWrongLastSequenceError:
             pass
-        await released(await js.create_key_value(KeyValueConfig(bucket="R", ttl=30.0,
-                                                                 history=1, replicas=3)))
+        kv_r = await js.create_key_value(KeyValueConfig(bucket="R", ttl=30.0, history=1,
+                                                        replicas=3))
+        await elected("KV_R")
+        await released(kv_r)
         await nc.close()
 
     async def released(kv: Any) -> None:
