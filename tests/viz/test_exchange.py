@@ -103,6 +103,13 @@ def test_planar_g2o_reads_back_in_gtsam(recording: Recording, tmp_path: Path,
         z = fa.measured()
         assert z.range() == pytest.approx(np.hypot(p[0], p[1]), rel=1e-12)
         assert z.bearing().theta() == pytest.approx(np.arctan2(p[1], p[0]), abs=1e-12)
+        # its sigmas: the point's covariance propagated to first order through (bearing, range)
+        _, cov = point_cov(samples[(a, b)])
+        x, y = p[0], p[1]
+        r = np.hypot(x, y)
+        jac = np.array([[-y / r**2, x / r**2], [x / r, y / r]])
+        np.testing.assert_allclose(fa.noiseModel().sigmas(),
+                                   np.sqrt(np.diag(jac @ cov[:2, :2] @ jac.T)), rtol=1e-9)
     # the default keeps g2o's own planar landmark edge: EDGE_SE2_XY with its information
     assert cli.main(["export", "g2o", str(recording.path), "-o", str(out)]) == 2
     assert "exists (--force overwrites it)" in capsys.readouterr().err

@@ -97,6 +97,10 @@ def test_export_reads_back_indexed_with_the_maps_ellipsoids(
                     t = pairs[(r, f)].translation
                     mean, _ = m.marginal(r, f)  # type: ignore[attr-defined]
                     np.testing.assert_allclose([t.x, t.y, t.z], mean[:3], rtol=1e-12)
+                    q = pairs[(r, f)].rotation  # the mean rotation too (w x y z up to sign)
+                    got = np.array([q.w, q.x, q.y, q.z])
+                    np.testing.assert_allclose(got * np.sign(got @ mean[3:]), mean[3:],
+                                               atol=1e-12)
         assert len(pairs) == len(roots) + sum(
             1 for r in roots for f in m.component(r)  # type: ignore[attr-defined]
             if f != r and not m.is_point(f))  # type: ignore[attr-defined]
@@ -244,3 +248,27 @@ def test_log_levels_of_verdicts(status: str, level: str) -> None:
                              "rid")
     assert got == level
     assert text.startswith("seq 7 update x0 -> x5: loop_closure") and text.endswith(" id rid")
+
+
+def test_the_point_cloud_holds_100_samples_per_frame_by_default() -> None:
+    """docs/visualising.md: samples of every frame, at most 100 per frame by default, evenly
+    strided (N = 1000: every 10th row); 0 gives no cloud."""
+    from mcsm import StochasticMap
+    from mcsm.viz.foxglove_scene import build_snapshot
+    from mcsm.viz.scene import map_view
+
+    from tests.viz.conftest import planar_at
+
+    rng = np.random.default_rng(20261131)
+    m = StochasticMap(1000)
+    for k in range(3):
+        m.update(f"x{k}", f"x{k + 1}", planar_at(rng, 1000, [1.0, 0.0], 0.2))
+    mv = map_view(m, map_name="default", seq=3, samples=True)
+    snap = build_snapshot(mv, 1)
+    schema = snap.cloud.get_schema()
+    cloud = message_class(schema.name, schema.data).FromString(snap.cloud.encode())
+    pts = np.frombuffer(cloud.data, dtype="<f4").reshape(-1, 4)
+    assert len(pts) == 100 * m.n_frames
+    x1 = m.query("x0", "x1")[::10, 0].astype(np.float32)
+    assert any(np.array_equal(pts[i:i + 100, 0], x1) for i in range(0, len(pts), 100))
+    assert build_snapshot(mv, 1, samples_per_frame=0).cloud is None
