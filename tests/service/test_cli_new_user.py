@@ -189,6 +189,22 @@ def test_replication_flags_are_checked_before_anything_starts(
     assert mcsm_main(["serve", *listen, "--nats-auth", "x.json"]) == 2
     assert "--nats-auth needs --nats URL" in capsys.readouterr().err
     assert not list(tmp_path.rglob("*.mcap"))
+    # a server identity's NATS credentials (docs/fleet.md): user, password and TLS files
+    from mcsm.cli import build_parser
+    from mcsm.cli.serve_cmd import _nats_options
+    from mcsm.errors import McsmError
+
+    auth = tmp_path / "server1.nats.json"
+    auth.write_text(json.dumps({"user": "server1", "password": "pw", "tls_ca": "ca.pem",
+                                "tls_cert": "s.pem", "tls_key": "s.key"}))
+    o = _nats_options(build_parser().parse_args(["serve", "--nats", "nats://127.0.0.1:1",
+                                                 "--nats-auth", str(auth)]))
+    assert (o.user, o.password, o.tls_ca, o.tls_cert, o.tls_key) == \
+        ("server1", "pw", "ca.pem", "s.pem", "s.key")
+    auth.write_text(json.dumps({"user": "server1", "token": "x"}))
+    with pytest.raises(McsmError, match="expected a JSON object of strings with keys"):
+        _nats_options(build_parser().parse_args(["serve", "--nats", "nats://127.0.0.1:1",
+                                                 "--nats-auth", str(auth)]))
     code = ("import sys\n"
             "from mcsm.cli import build_parser\n"
             "from mcsm.cli.serve_cmd import _nats_options\n"
