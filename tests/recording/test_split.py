@@ -233,6 +233,11 @@ def test_ids_survive_restore_after_restore_with_their_receive_times(tmp_path: Pa
     st = short.states["default"]
     assert st.lookup("u0", now_ns=t_last) is None
     assert st.lookup("u1", now_ns=t_last) is not None
+    # --id-memory: beyond the count the oldest go first, restored ids and replayed alike
+    small = replay(tmp_path / "three.mcap", from_snapshot=True, id_ttl_s=3600, lru_size=5)
+    st = small.states["default"]
+    kept = [rid for _, rid, _ in dr.sent if st.lookup(rid, now_ns=t_last) is not None]
+    assert kept == [rid for _, rid, _ in dr.sent[-5:]]
 
 
 def test_chunk_indexes_spill_to_disk_and_still_index_every_chunk(
@@ -453,3 +458,26 @@ def test_split_duration_starts_a_new_file_after_that_long(
     dr.close()
     assert [p.name for p in rec.paths] == ["run_0000.mcap", "run_0001.mcap"]
     assert replay(rec.paths).identical
+
+
+def test_a_recording_whose_snapshots_carry_no_ids_still_restores_them(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """docs/recordings.md: recordings made before snapshots carried the ids restore as before,
+    the ids of the inputs before the snapshot in the same file remembered."""
+    monkeypatch.setattr("mcsm.log.writer.encode_ids", lambda _cols: None)  # as older writers
+    rec = Recorder(tmp_path / "old.mcap")
+    dr = Driver(rec, _state(), seed=7107, disk_every=10)
+    rec.config(dr.st, 5)
+    for k in range(25):
+        dr.update(k)
+    rec.close()
+    monkeypatch.undo()
+    snaps = [r.data for r in RecordingReader(tmp_path / "old.mcap")
+             if r.topic == "/mcsm/snapshot"]
+    assert snaps and all(d.get("ids") is None for d in snaps)
+    rep = replay(tmp_path / "old.mcap", from_snapshot=True, id_ttl_s=3600)
+    assert rep.identical and rep.snapshots_loaded == 1
+    st = rep.states["default"]
+    for op, rid, payload in dr.sent:
+        hit = st.lookup(rid, ops.fingerprint(op, decode_input(op, payload, N)), now_ns=dr.t)
+        assert hit is not None and hit.duplicate, rid
