@@ -536,6 +536,36 @@ def test_lz4_where_it_pays_and_plain_chunks_where_it_does_not(tmp_path: Path) ->
     assert sum(1 for _ in rd) == 7 and rd.complete and rd.data_crc and rd.summary_crc
 
 
+def test_lz4_is_tried_again_every_64_messages_on_a_channel_that_did_not_compress(
+        tmp_path: Path) -> None:
+    """After a message that does not compress, the channel's next 64 are stored as they are
+    (no time spent trying), and the 65th is tried again: planar samples compress again."""
+    from mcsm.log.chunkwriter import ChunkPerInputWriter
+
+    rng = np.random.default_rng(8809)
+    n = 200
+    planar = noisy_at(rng, n, [1, 0, 0])
+    planar[:, 2] = 0.0
+    planar[:, 3:] = [1.0, 0.0, 0.0, 0.0]
+    payloads = [wire.encode_update("s0", "b0", "b1", noisy_at(rng, n, [1, 0, 0]))]
+    payloads += [wire.encode_update(f"p{i}", f"a{i}", f"a{i + 1}", planar) for i in range(66)]
+    path = tmp_path / "r.mcap"
+    rec = Recorder(path)
+    st = MapState("default", StochasticMap(n))
+    rec.config(st, 10_000)
+    for i, p in enumerate(payloads):
+        rec.input("update", "default", i + 1, 1000 + i, "t", f"i{i}", p)
+    rec.close()
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    inputs = [c.compression for c in summary.chunk_indexes
+              if c.uncompressed_size > 3_000]  # the inputs' chunks (configs are small)
+    retry = ChunkPerInputWriter.LZ4_RETRY
+    assert retry == 64 and len(inputs) == 67
+    assert inputs == [""] * (1 + retry) + ["lz4"] * 2, inputs
+
+
 @pytest.mark.parametrize("layout", ["indexed", "indexed-lz4", "indexed-zstd", "flat"])
 def test_every_layout_replays(tmp_path: Path, layout: str) -> None:
     path = tmp_path / "r.mcap"
