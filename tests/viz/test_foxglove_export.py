@@ -139,6 +139,14 @@ def test_export_default_every_and_a_cut_recording(recording: Recording, tmp_path
     out = tmp_path / "all.mcap"
     rep = export_foxglove(recording.path, out, map_name="default", samples_per_frame=0)
     assert rep.every == 1 and rep.snapshots == list(range(1, 17))  # 16 ops: K = ceil(16/100)
+    # 250 operations: K = ceil(250 / 100) = 3, every 3rd and the last, 84 snapshots
+    from tests.recording.test_recording import record_session
+
+    long = tmp_path / "long.mcap"
+    record_session(long, 8, 250, seed=20261132)
+    many = export_foxglove(long, tmp_path / "long-scene.mcap", samples_per_frame=0)
+    assert many.every == 3 and many.snapshots == [*range(3, 250, 3), 250]
+    assert len(many.snapshots) == 84
     assert rep.final_view is not None and rep.final_view.seq == 16 and rep.notes == []
     # a copy cut in the middle (like a SIGKILLed server's file): every complete input, a warning
     data = recording.path.read_bytes()
