@@ -500,6 +500,20 @@ def test_config_record_matches_its_schema(tmp_path: Path) -> None:
     assert rd.metadata["mcsm"]["format"] == "mcsm recording v2"
 
 
+def _record_updates(path: Path, n: int, payloads: list[bytes]) -> Any:
+    """Record ``payloads`` as updates of one map (no checkpoints); the file's summary."""
+    rec = Recorder(path)
+    assert rec.layout == "indexed-lz4"
+    rec.config(MapState("default", StochasticMap(n)), 10_000)
+    for i, p in enumerate(payloads):
+        rec.input("update", "default", i + 1, 1000 + i, "t", f"i{i}", p)
+    rec.close()
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    return summary
+
+
 def test_lz4_where_it_pays_and_plain_chunks_where_it_does_not(tmp_path: Path) -> None:
     """Planar samples (z, qx, qy exactly 0) compress; 3-D noise does not and is stored as it
     is. Both read back through mcap's seeking reader with the exact request bytes."""
@@ -514,17 +528,9 @@ def test_lz4_where_it_pays_and_plain_chunks_where_it_does_not(tmp_path: Path) ->
     payloads += [wire.encode_update(f"s{i}", f"b{i}", f"b{i + 1}", noisy_at(rng, n, [1, 0, 0]))
                  for i in range(3)]
     path = tmp_path / "r.mcap"
-    rec = Recorder(path)
-    assert rec.layout == "indexed-lz4"
-    st = MapState("default", StochasticMap(n))
-    rec.config(st, 100)
-    for i, p in enumerate(payloads):
-        rec.input("update", "default", i + 1, 1000 + i, "t", f"i{i}", p)
-    rec.close()
+    summary = _record_updates(path, n, payloads)
     with open(path, "rb") as f:
         reader = make_reader(f)
-        summary = reader.get_summary()
-        assert summary is not None
         requests = [wire.unpack(m.data)["request"] for _, ch, m in
                     reader.iter_messages(log_time_order=False) if ch.topic in INPUT_TOPICS.values()]
     assert requests == payloads
@@ -549,16 +555,7 @@ def test_lz4_is_tried_again_every_64_messages_on_a_channel_that_did_not_compress
     planar[:, 3:] = [1.0, 0.0, 0.0, 0.0]
     payloads = [wire.encode_update("s0", "b0", "b1", noisy_at(rng, n, [1, 0, 0]))]
     payloads += [wire.encode_update(f"p{i}", f"a{i}", f"a{i + 1}", planar) for i in range(66)]
-    path = tmp_path / "r.mcap"
-    rec = Recorder(path)
-    st = MapState("default", StochasticMap(n))
-    rec.config(st, 10_000)
-    for i, p in enumerate(payloads):
-        rec.input("update", "default", i + 1, 1000 + i, "t", f"i{i}", p)
-    rec.close()
-    with open(path, "rb") as f:
-        summary = make_reader(f).get_summary()
-    assert summary is not None
+    summary = _record_updates(tmp_path / "r.mcap", n, payloads)
     inputs = [c.compression for c in summary.chunk_indexes
               if c.uncompressed_size > 3_000]  # the inputs' chunks (configs are small)
     retry = ChunkPerInputWriter.LZ4_RETRY
